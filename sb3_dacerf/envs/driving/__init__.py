@@ -1,0 +1,26 @@
+"""
+The paper's two driving scenarios on highway-env (extra ``driving``: ``pip install sb3_dacerf[driving]``).
+
+- ``DACERF-Multilane-v0``: multi-lane highway (:class:`sb3_dacerf.envs.driving.multilane.MultilaneEnv`);
+- ``DACERF-Intersection-v0``: urban intersection (:class:`sb3_dacerf.envs.driving.intersection.IntersectionEnv`).
+
+``gym.make`` kwargs: ``density="sparse" | "normal" | "dense"``, ``render_mode`` (``"rgb_array"`` renders
+offscreen) and ``config`` (a dict of overrides of the env's ``default_config()``). Observation, action
+and reward are described in :mod:`sb3_dacerf.envs.driving.common`.
+
+Importing this package does not import highway-env: registration records ids and entry points only.
+"""
+
+import gymnasium as gym
+
+DRIVING_ENV_IDS = {
+    "DACERF-Multilane-v0": "sb3_dacerf.envs.driving.multilane:MultilaneEnv",
+    "DACERF-Intersection-v0": "sb3_dacerf.envs.driving.intersection:IntersectionEnv",
+}
+
+
+def register_driving_envs() -> None:
+    """Register the driving environment ids with Gymnasium (idempotent, imports no simulator)."""
+    for env_id, entry_point in DRIVING_ENV_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=entry_point)

@@ -1,0 +1,184 @@
+"""
+Urban intersection of the paper (``DACERF-Intersection-v0``), on highway-env's ``IntersectionEnv``.
+
+A four-way crossroads (one lane each way, 4 m lanes, 22 m × 22 m junction box, the horizontal road has
+priority for highway-env's IDM traffic) with oncoming and crossing traffic spawned on every arm. The ego
+approaches from the south arm and follows a route drawn among ``routes`` (straight, left, right,
+U-turn): the reference path is the centre line of the approach lane, the turning lane of highway-env's
+road network and the exit lane; the U-turn, which the single-lane network lacks, is a keyhole loop
+through the junction box (radius 8.5 m arcs, just above the ego's minimum turning radius of 8.1 m at
+δ = 0.571 rad). The road area is the two 8 m wide roads plus the whole junction box (the solid lines
+highway-env draws along the right-turn lanes at the corners are markings; the U-turn crosses them). Target speed from ``reference_speed_ranges`` of the route (straight 6-9 m/s, left 4-7, right 3-5,
+U-turn 3-4.5: the steering rate is limited to 0.25 rad/s); random start 20-40 m before the junction
+with small lateral and heading offsets. ``density`` sets the initial vehicle count and the spawn
+probability per step (sparse 5 / 0.03, normal 10 / 0.06 = highway-env's default rate of 0.6 per second,
+dense 15 / 0.12).
+
+The episode ends on a collision, when the ego's centre leaves the road, or when it has driven
+25 m into any exit lane (``info["is_success"]`` is true only for the route's exit); it is truncated
+after ``duration`` (40 s). Observation scaling: positions / 25 m, speeds / 10 m/s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from highway_env.envs.intersection_env import IntersectionEnv as HighwayIntersectionEnv
+from highway_env.road.lane import AbstractLane
+
+from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
+
+ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
+"""Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
+
+LANE_WIDTH = AbstractLane.DEFAULT_WIDTH
+JUNCTION_HALF_SIZE = LANE_WIDTH + 5 + LANE_WIDTH / 2
+"""Half side of the junction box [m], highway-env's ``outer_distance``."""
+U_TURN_RADIUS = 8.5
+"""Radius of the U-turn arcs [m]."""
+
+
+def u_turn_points(start: np.ndarray, heading: float, turn_sign: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Sample a keyhole U-turn: a swing away by θ, a loop of π + 2θ towards the turn side, a swing back by θ,
+    all of radius ``U_TURN_RADIUS``, ending one lane width to the turn side, heading the opposite way.
+
+    :param start: start position [m]
+    :param heading: start heading [rad]
+    :param turn_sign: +1 or -1, the sign of the heading change of a left turn
+    :param step: sampling interval [m]
+    :return: positions (N, 2) and headings (N,), the last ones at the end of the loop
+    """
+    theta = np.arccos((U_TURN_RADIUS + LANE_WIDTH / 2) / (2 * U_TURN_RADIUS))
+    curvature = turn_sign / U_TURN_RADIUS
+    pieces = [(-curvature, theta), (curvature, np.pi + 2 * theta), (-curvature, theta)]
+    points, headings = [], []
+    position, psi = np.asarray(start, dtype=np.float64), heading
+    for kappa, angle in pieces:
+        length = angle * U_TURN_RADIUS
+        s = np.arange(0.0, length, step)
+        # Exact arc of constant curvature from (position, psi).
+        points.append(
+            position
+            + np.column_stack([np.sin(psi + kappa * s) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * s)]) / kappa
+        )
+        headings.append(psi + kappa * s)
+        position = position + np.array([np.sin(psi + kappa * length) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * length)]) / kappa
+        psi = psi + kappa * length
+    return np.concatenate([*points, [position]]), np.concatenate([*headings, [psi]])
+
+
+class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
+    """
+    Urban intersection with straight, left, right and U-turn routes; see the module docstring.
+
+    :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
+    :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
+    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
+    """
+
+    DENSITY_CONFIGS = {
+        "sparse": {"initial_vehicle_count": 5, "spawn_probability": 0.03},
+        "normal": {"initial_vehicle_count": 10, "spawn_probability": 0.06},
+        "dense": {"initial_vehicle_count": 15, "spawn_probability": 0.12},
+    }
+    EXIT_DISTANCE = 25.0
+    """Distance driven into an exit lane that ends the episode [m] (highway-env's ``has_arrived``)."""
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        config.update(
+            {
+                "duration": 40,  # [s]
+                "initial_vehicle_count": 10,
+                "spawn_probability": 0.06,  # per policy step
+                "routes": list(ROUTES),  # the ego's route is drawn uniformly among these
+                # [m/s] target speed of each route: tight turns are slow, the steering rate is at most 0.25 rad/s
+                "reference_speed_ranges": {"straight": [6.0, 9.0], "left": [4.0, 7.0], "right": [3.0, 5.0], "u_turn": [3.0, 4.5]},
+                "position_scale": 25.0,
+                "speed_scale": 10.0,
+            }
+        )
+        return config
+
+    def configure(self, config: dict | None) -> None:
+        super().configure(config)
+        routes = self.config["routes"]
+        if isinstance(routes, str) or not routes or any(route not in ROUTES for route in routes):
+            raise ValueError(f"routes must be a non-empty list of {list(ROUTES)}, got {routes!r}")
+        missing = set(routes) - set(self.config["reference_speed_ranges"])
+        if missing:
+            raise ValueError(f"reference_speed_ranges lacks the route(s) {sorted(missing)} (overrides replace the whole dict)")
+
+    def _make_vehicles(self, n_vehicles: int = 10) -> None:
+        """Spawn and warm up the traffic as highway-env does, then create the ego, its route and reference."""
+        config, rng, network = self.config, self.np_random, self.road.network
+        for longitudinal in np.linspace(0, 80, config["initial_vehicle_count"])[:-1]:
+            self._spawn_vehicle(longitudinal)
+        for _ in range(3 * config["simulation_frequency"]):  # 3 s of traffic so that it is flowing
+            self.road.act()
+            self.road.step(1 / config["simulation_frequency"])
+        self._spawn_vehicle(60, spawn_probability=1.0, go_straight=True, position_deviation=0.1, speed_deviation=0.0)
+
+        self.route = str(rng.choice(config["routes"]))
+        exit_arm = ROUTES[self.route]
+        approach = network.get_lane(("o0", "ir0", 0))
+        exit_lane = network.get_lane((f"il{exit_arm}", f"o{exit_arm}", 0))
+        start = approach.length - rng.uniform(20.0, 40.0)
+        self.reference_speed = float(rng.uniform(*config["reference_speed_ranges"][self.route]))
+        ego = self.action_type.vehicle_class(
+            self.road,
+            approach.position(start, rng.normal(0.0, 0.2)),
+            heading=approach.heading_at(start) + rng.normal(0.0, 0.02),
+            speed=max(self.reference_speed + rng.normal(0.0, 0.5), 0.0),
+        )
+        step = 0.5
+        if self.route == "u_turn":
+            left = network.get_lane(("ir0", "il1", 0))
+            turn_sign = np.sign(left.heading_at(left.length) - left.heading_at(0.0))
+            # Starting the loop 1 m before the junction keeps the ego body 0.9 m or more from the road edges.
+            loop_start = approach.length - 1.0
+            loop_points, loop_headings = u_turn_points(
+                approach.position(loop_start, 0.0), approach.heading_at(loop_start), turn_sign, step
+            )
+            head = ReferencePath.from_lanes([(approach, 0.0, loop_start)], step)
+            tail_start = exit_lane.local_coordinates(loop_points[-1])[0] + step
+            tail = ReferencePath.from_lanes([(exit_lane, tail_start, exit_lane.length)], step)
+            self.reference = ReferencePath(
+                np.concatenate([head.points[:-1], loop_points, tail.points]),
+                np.concatenate([head.headings[:-1], loop_headings, tail.headings]),
+            )
+        else:
+            turn = network.get_lane(("ir0", f"il{exit_arm}", 0))
+            self.reference = ReferencePath.from_lanes(
+                [(approach, 0.0, approach.length), (turn, 0.0, turn.length), (exit_lane, 0.0, exit_lane.length)], step
+            )
+        self.controlled_vehicles = [ego]
+        self.road.vehicles.append(ego)
+        # Prevent collisions at the start, as highway-env does.
+        self.road.vehicles = [v for v in self.road.vehicles if v is ego or np.linalg.norm(v.position - ego.position) >= 20]
+
+    def _spawn_vehicle(self, longitudinal: float = 0, *args, **kwargs):
+        """highway-env's spawner, with its IDM settings for junctions set per vehicle instead of on the class."""
+        vehicle = super()._spawn_vehicle(longitudinal, *args, **kwargs)
+        if vehicle is not None:
+            # highway-env's intersection-v0 sets these on the IDMVehicle class, which leaks into every other env.
+            vehicle.DISTANCE_WANTED, vehicle.COMFORT_ACC_MAX, vehicle.COMFORT_ACC_MIN = 7.0, 6.0, -3.0
+        return vehicle
+
+    def _has_exited(self) -> bool:
+        return self.has_arrived(self.vehicle, exit_distance=self.EXIT_DISTANCE)
+
+    def _is_terminated(self) -> bool:
+        return super()._is_terminated() or self._has_exited()
+
+    def _is_success(self) -> bool:
+        return self._has_exited() and self.vehicle.lane_index[1] == f"o{ROUTES[self.route]}"
+
+    def _road_clearance(self, position: np.ndarray) -> float:
+        # Road = the two arms (|x| or |y| within two lane widths of the axis) and the junction box.
+        x, y = np.abs(position)
+        arm, box = LANE_WIDTH, JUNCTION_HALF_SIZE
+        if (x > arm and y > box) or (x > box and y > arm):
+            return -float(min(x - arm, y - arm, np.hypot(max(x - box, 0.0), max(y - box, 0.0))))
+        return float(min(np.hypot(max(arm - x, 0.0), max(box - y, 0.0)), np.hypot(max(box - x, 0.0), max(arm - y, 0.0))))

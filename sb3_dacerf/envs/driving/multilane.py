@@ -1,0 +1,150 @@
+"""
+Multi-lane highway of the paper (``DACERF-Multilane-v0``), on highway-env's ``HighwayEnv``.
+
+High-speed continuous driving on a straight road of ``lanes_count`` (3) lanes with IDM / MOBIL traffic
+that changes lanes and cuts in. The reference path is the centre line of the ego's current lane or of
+an adjacent one (a lane change to merge into), with a target speed drawn from ``reference_speed_range``;
+the ego starts in the traffic flow (its speed drawn like the traffic's) with small random lateral and
+heading offsets. Only the stretch ``traffic_window`` around the ego (default 80 m behind to 120 m ahead)
+is simulated: vehicles leaving it are removed and new ones enter at the other end, so the vehicle count
+stays at ``vehicles_count`` (``density``: sparse 6, normal 12, dense 20) and the simulation cost does not
+grow with the road length. As in highway-env's ``highway-fast-v0``, only the ego's collisions are checked.
+
+An episode is truncated after ``duration`` (30 s, 300 steps) and ends early on a collision or when the
+ego's centre leaves the carriageway; ``info["is_success"]`` is true when it reaches the time limit
+safely. Observation scaling: positions / 50 m, speeds / 30 m/s (see ``sb3_dacerf.envs.driving.common``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from highway_env import utils
+from highway_env.envs.highway_env import HighwayEnv
+from highway_env.road.lane import AbstractLane
+from highway_env.road.road import LaneIndex
+from highway_env.vehicle.kinematics import Vehicle
+
+from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
+
+REFERENCE_LANES = ("random", "current", "left", "right")
+
+
+class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
+    """
+    Multi-lane highway with lane changes and merging into traffic; see the module docstring.
+
+    :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
+    :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
+    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
+    """
+
+    DENSITY_CONFIGS = {
+        "sparse": {"vehicles_count": 6},
+        "normal": {"vehicles_count": 12},
+        "dense": {"vehicles_count": 20},
+    }
+    TRAFFIC_GAP = 15.0
+    """Minimum distance between the centres of two vehicles placed in the same lane [m]."""
+    EGO_CLEARANCE = (-20.0, 30.0)
+    """Free stretch [m] behind and ahead of the ego in its own lane where no vehicle is placed."""
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        config.update(
+            {
+                "lanes_count": 3,
+                "vehicles_count": 12,
+                "traffic_window": [-80.0, 120.0],  # [m] simulated stretch around the ego
+                "traffic_speed_range": [20.0, 25.0],  # [m/s] initial and desired speeds of the traffic
+                "reference_speed_range": [15.0, 25.0],  # [m/s] target speed of the ego
+                "reference_lane": "random",  # "random" (current or adjacent), "current", "left" or "right"
+            }
+        )
+        return config
+
+    def configure(self, config: dict | None) -> None:
+        super().configure(config)
+        if self.config["reference_lane"] not in REFERENCE_LANES:
+            raise ValueError(f"Unknown reference_lane {self.config['reference_lane']!r}: expected one of {REFERENCE_LANES}")
+        if self.config["lanes_count"] < 2 and self.config["reference_lane"] in ("left", "right"):
+            raise ValueError("reference_lane 'left' / 'right' needs lanes_count >= 2")
+        if self.config["lanes_count"] < 1:
+            raise ValueError(f"lanes_count must be >= 1, got {self.config['lanes_count']}")
+
+    def _create_vehicles(self) -> None:
+        """Create the ego in the traffic flow, its reference lane and speed, and the traffic around it."""
+        config, rng, network = self.config, self.np_random, self.road.network
+        lanes_count = config["lanes_count"]
+        offsets = {"random": (-1, 0, 1), "current": (0,), "left": (-1,), "right": (1,)}[config["reference_lane"]]
+        ego_lanes = [i for i in range(lanes_count) if any(0 <= i + o < lanes_count for o in offsets)]
+        ego_lane_id = int(rng.choice(ego_lanes))
+        reference_lane_id = ego_lane_id + int(rng.choice([o for o in offsets if 0 <= ego_lane_id + o < lanes_count]))
+
+        ego_lane = network.get_lane(("0", "1", ego_lane_id))
+        x0 = 20.0 - config["traffic_window"][0]
+        ego = self.action_type.vehicle_class(
+            self.road,
+            ego_lane.position(x0, rng.normal(0.0, 0.2)),
+            heading=ego_lane.heading_at(x0) + rng.normal(0.0, 0.01),
+            speed=rng.uniform(*config["traffic_speed_range"]),
+        )
+        self.controlled_vehicles = [ego]
+        self.road.vehicles.append(ego)
+
+        self.reference_speed = float(rng.uniform(*config["reference_speed_range"]))
+        reference_lane = network.get_lane(("0", "1", reference_lane_id))
+        end = x0 + Vehicle.MAX_SPEED * config["duration"] + 100.0
+        self.reference = ReferencePath.from_lanes([(reference_lane, x0 - 50.0, end)], step=10.0)
+
+        behind, ahead = config["traffic_window"]
+        for _ in range(config["vehicles_count"]):
+            self._place_traffic_vehicle(x0 + behind, x0 + ahead)
+
+    def _place_traffic_vehicle(self, low: float, high: float) -> bool:
+        """
+        Put one IDM vehicle at a random free spot of a random lane between two abscissas.
+
+        :param low: lowest abscissa [m]
+        :param high: highest abscissa [m]
+        :return: whether a free spot was found
+        """
+        config, rng = self.config, self.np_random
+        vehicle_type = utils.class_from_path(config["other_vehicles_type"])
+        ego_x, ego_lane = self.vehicle.position[0], self.vehicle.lane_index
+        for _ in range(50):
+            lane_index: LaneIndex = ("0", "1", int(rng.integers(config["lanes_count"])))
+            x = rng.uniform(low, high)
+            if lane_index == ego_lane and self.EGO_CLEARANCE[0] < x - ego_x < self.EGO_CLEARANCE[1]:
+                continue
+            if abs(x - ego_x) < self.TRAFFIC_GAP:  # nobody alongside the ego either
+                continue
+            if any(v.lane_index == lane_index and abs(v.position[0] - x) < self.TRAFFIC_GAP for v in self.road.vehicles):
+                continue
+            vehicle = vehicle_type.make_on_lane(self.road, lane_index, x, speed=rng.uniform(*config["traffic_speed_range"]))
+            vehicle.randomize_behavior()
+            vehicle.check_collisions = False  # only the ego's collisions matter, as in highway-fast-v0
+            self.road.vehicles.append(vehicle)
+            return True
+        return False
+
+    def _simulate(self, action: np.ndarray | None = None) -> None:
+        """Step the traffic, then move the vehicles that left the simulated window to its other end."""
+        super()._simulate(action)
+        behind, ahead = self.config["traffic_window"]
+        ego_x = self.vehicle.position[0]
+        for vehicle in [v for v in self.road.vehicles if v is not self.vehicle]:
+            dx = vehicle.position[0] - ego_x
+            if dx < behind or dx > ahead:
+                self.road.vehicles.remove(vehicle)
+                entry = (ego_x + ahead - 20.0, ego_x + ahead) if dx < behind else (ego_x + behind, ego_x + behind + 20.0)
+                self._place_traffic_vehicle(*entry)
+
+    def _road_clearance(self, position: np.ndarray) -> float:
+        lane_width = AbstractLane.DEFAULT_WIDTH
+        lateral = self.road.network.get_lane(("0", "1", 0)).local_coordinates(position)[1]
+        return float(min(lateral + lane_width / 2, (self.config["lanes_count"] - 0.5) * lane_width - lateral))
+
+    def _is_success(self) -> bool:
+        """The drive is completed when the time limit is reached."""
+        return self._is_truncated()

@@ -1,0 +1,289 @@
+"""Tests of the paper's driving environments on highway-env (DACERF-Multilane-v0, DACERF-Intersection-v0)."""
+
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+pytest.importorskip("highway_env")
+
+import sb3_dacerf  # noqa: E402, F401  (registers the ids)
+from sb3_dacerf.envs.driving.common import EGO_FEATURES, REWARD_TERMS, VEHICLE_FEATURES, WAYPOINT_FEATURES  # noqa: E402
+
+ENV_IDS = ["DACERF-Multilane-v0", "DACERF-Intersection-v0"]
+PAPER_INCREMENT_LOW, PAPER_INCREMENT_HIGH = np.array([-0.4, -0.025]), np.array([0.25, 0.025])
+PAPER_COMMAND_BOUND = np.array([0.8, 0.571])
+OBS_SIZE = EGO_FEATURES + WAYPOINT_FEATURES * 10 + VEHICLE_FEATURES * 8
+
+
+def make(env_id: str, **config) -> gym.Env:
+    return gym.make(env_id, config={"duration": 3, **config})
+
+
+def empty_highway(**config):
+    """A multi-lane env with the ego alone, on its reference lane, aligned, at the target speed."""
+    env = make("DACERF-Multilane-v0", reference_lane="current", **config)
+    env.reset(seed=0)
+    unwrapped = env.unwrapped
+    ego = unwrapped.vehicle
+    unwrapped.road.vehicles = [ego]
+    lane = unwrapped.road.network.get_lane(ego.lane_index)
+    ego.position = lane.position(lane.local_coordinates(ego.position)[0], 0.0)
+    ego.heading = lane.heading_at(0.0)
+    ego.speed = unwrapped.reference_speed
+    return env, unwrapped, ego, lane
+
+
+def add_vehicle(unwrapped, lane_index, longitudinal: float, speed: float = 20.0):
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    vehicle = IDMVehicle.make_on_lane(unwrapped.road, lane_index, longitudinal, speed=speed)
+    unwrapped.road.vehicles.append(vehicle)
+    return vehicle
+
+
+def test_registration_imports_no_simulator():
+    code = "import sys, gymnasium as gym, sb3_dacerf; assert 'highway_env' not in sys.modules; print(sorted(i for i in gym.registry if i.startswith('DACERF-')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "DACERF-Intersection-v0" in out and "DACERF-Multilane-v0" in out
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_spaces_and_bounds(env_id):
+    env = make(env_id)
+    obs, info = env.reset(seed=0)
+    assert env.action_space.dtype == np.float32 and env.observation_space.dtype == np.float32
+    np.testing.assert_allclose(env.action_space.low, PAPER_INCREMENT_LOW, rtol=1e-6)
+    np.testing.assert_allclose(env.action_space.high, PAPER_INCREMENT_HIGH, rtol=1e-6)
+    assert obs.shape == env.observation_space.shape == (OBS_SIZE,)
+    assert set(info["reward_terms"]) == set(REWARD_TERMS)
+    action_type = env.unwrapped.action_type
+    rng = np.random.default_rng(0)
+    for _ in range(30):  # actions beyond the bounds are clipped to them
+        previous = action_type.command.copy()
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+        assert np.all(action_type.applied_increment >= PAPER_INCREMENT_LOW - 1e-9)
+        assert np.all(action_type.applied_increment <= PAPER_INCREMENT_HIGH + 1e-9)
+        np.testing.assert_allclose(action_type.command, previous + action_type.applied_increment)
+        assert np.all(np.abs(action_type.command) <= PAPER_COMMAND_BOUND + 1e-9)
+        assert obs.dtype == np.float32 and np.all(np.isfinite(obs)) and np.isfinite(reward)
+        np.testing.assert_allclose(obs[3:5], action_type.command, rtol=1e-6)  # a_x and δ in the observation
+        for key in ("is_success", "collision", "off_road", "reward_terms"):
+            assert key in info
+        assert reward == pytest.approx(sum(info["reward_terms"].values()))
+        if terminated or truncated:
+            break
+
+
+def test_increments_integrate_to_paper_bounds():
+    env, unwrapped, ego, lane = empty_highway(duration=20)
+    ego.speed = 0.0  # standing still, so that full steering does not leave the road
+    for action, steps, expected in (((1.0, 0.0), 3, (0.75, 0.0)), ((1.0, 0.0), 1, (0.8, 0.0)), ((-1.0, 1.0), 4, (-0.8, 0.1))):
+        for _ in range(steps):
+            env.step(np.array(action, dtype=np.float32))
+        np.testing.assert_allclose(unwrapped.action_type.command, expected, atol=1e-9)
+    for _ in range(30):
+        env.step(np.array([0.0, 1.0], dtype=np.float32))
+    np.testing.assert_allclose(unwrapped.action_type.command, (-0.8, 0.571), atol=1e-9)
+    assert ego.speed == pytest.approx(0.0, abs=0.1)  # no reversing under negative acceleration
+
+
+def test_observation_layout():
+    env, unwrapped, ego, lane = empty_highway()
+    ego_s = lane.local_coordinates(ego.position)[0]
+    ahead = add_vehicle(unwrapped, ego.lane_index, ego_s + 20.0, speed=18.0)
+    side_lane = (ego.lane_index[0], ego.lane_index[1], 1 - min(ego.lane_index[2], 1))  # an adjacent lane
+    add_vehicle(unwrapped, side_lane, ego_s - 40.0)
+    obs = unwrapped.observation_type.observe()
+    scale, speed_scale = unwrapped.config["position_scale"], unwrapped.config["speed_scale"]
+    np.testing.assert_allclose(obs[:EGO_FEATURES], [ego.speed / speed_scale, 0, 0, 0, 0], atol=1e-6)
+    waypoints = obs[EGO_FEATURES : EGO_FEATURES + 40].reshape(10, 4)
+    interval = unwrapped.config["reference_waypoint_interval"]
+    expected_x = np.arange(10) * unwrapped.reference_speed * interval / scale
+    np.testing.assert_allclose(waypoints[:, 0], expected_x, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(waypoints[:, 1:], np.tile([0.0, 1.0, 0.0], (10, 1)), atol=1e-6)
+    vehicles = obs[EGO_FEATURES + 40 :].reshape(8, VEHICLE_FEATURES)
+    np.testing.assert_allclose(vehicles[0], [20.0 / scale, 0.0, 1.0, 0.0, ahead.speed / speed_scale, 1.0], atol=1e-6)
+    lateral = (side_lane[2] - ego.lane_index[2]) * 4.0  # lanes are 4 m wide, ids grow along the ego-frame y axis
+    np.testing.assert_allclose(vehicles[1], [-40.0 / scale, lateral / scale, 1.0, 0.0, 20.0 / speed_scale, 1.0], atol=1e-6)
+    assert not vehicles[2:].any()  # padding: zeros, mask 0
+
+
+def step_terms(env, action=(0.0, 0.0)) -> dict:
+    return env.step(np.array(action, dtype=np.float32))[4]["reward_terms"]
+
+
+def test_reward_terms_signs():
+    env, unwrapped, ego, lane = empty_highway()
+    terms = step_terms(env)
+    assert terms["liveness"] == pytest.approx(1.0)  # clip(v_x, 0, 3) / 3 at highway speed
+    assert all(abs(value) < 1e-3 for name, value in terms.items() if name != "liveness"), terms
+
+    cases = {
+        "tracking_lateral": lambda: setattr(ego, "position", ego.position + np.array([0.0, 1.0])),
+        "tracking_speed": lambda: setattr(ego, "speed", unwrapped.reference_speed - 3.0),
+        "tracking_heading": lambda: setattr(ego, "heading", 0.2),
+        "control_acceleration": lambda: setattr(unwrapped.action_type, "command", np.array([0.5, 0.0])),
+        "control_steering": lambda: setattr(unwrapped.action_type, "command", np.array([0.0, 0.05])),
+        "comfort_yaw_rate": lambda: setattr(unwrapped.action_type, "command", np.array([0.0, 0.05])),
+        "safe_front": lambda: add_vehicle(unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 15.0, ego.speed),
+        "safe_space": lambda: add_vehicle(unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 7.0, ego.speed),
+        "boundary": lambda: setattr(ego, "position", np.array([ego.position[0], -0.8])),  # 1.2 m from lane 0's edge
+    }
+    for term, construct in cases.items():
+        env, unwrapped, ego, lane = empty_highway()
+        construct()
+        terms = step_terms(env)
+        assert terms[term] < 0, (term, terms)
+        assert terms["collision"] == 0 and terms["off_road"] == 0, (term, terms)
+        assert terms["liveness"] > 0
+
+    env, unwrapped, ego, lane = empty_highway()
+    terms = step_terms(env, (0.25, 0.025))  # an increment: jerk 2.5 m/s³, steering rate 0.25 rad/s
+    assert terms["comfort_jerk"] == pytest.approx(-0.5 * (np.sqrt(1 + 2.5**2) - 1))
+    assert terms["comfort_steering_rate"] == pytest.approx(-0.005 * (np.sqrt(1 + 0.25**2) - 1))
+    assert terms["control_acceleration"] == pytest.approx(-(0.25**3))
+
+
+def test_collision_ends_episode_with_penalty():
+    env, unwrapped, ego, lane = empty_highway()
+    add_vehicle(unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 3.0, speed=5.0)
+    _, reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
+    assert terminated and info["collision"] and not info["is_success"]
+    assert info["reward_terms"]["collision"] == -200.0 and reward <= -200.0
+
+
+def test_leaving_the_road_ends_episode_with_penalty():
+    env, unwrapped, ego, lane = empty_highway()
+    ego.position = np.array([ego.position[0], -2.5])  # beyond the left edge of lane 0 (centre y = 0, 4 m wide)
+    _, reward, terminated, _, info = env.step(np.zeros(2, dtype=np.float32))
+    assert terminated and info["off_road"] and not info["is_success"]
+    assert info["reward_terms"]["off_road"] == -200.0 and reward <= -200.0
+
+
+def test_highway_success_at_time_limit():
+    env, unwrapped, ego, lane = empty_highway(duration=1)
+    for _ in range(10):
+        _, _, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
+    assert truncated and not terminated and info["is_success"]
+
+
+@pytest.mark.parametrize("route", ["straight", "left", "right", "u_turn"])
+def test_intersection_routes(route):
+    env = make("DACERF-Intersection-v0", routes=[route])
+    env.reset(seed=0)
+    unwrapped = env.unwrapped
+    exit_arm = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}[route]
+    exit_lane = unwrapped.road.network.get_lane((f"il{exit_arm}", f"o{exit_arm}", 0))
+    reference = unwrapped.reference
+    longitudinal, lateral = exit_lane.local_coordinates(reference.points[-1])
+    assert longitudinal == pytest.approx(exit_lane.length) and lateral == pytest.approx(0.0, abs=1e-6)
+    assert np.all(np.diff(reference.s) > 0)
+    # The reference keeps the ego body out of the boundary cost: clearance >= half width + d_thresh.
+    assert min(unwrapped._road_clearance(p) for p in reference.points) >= 1.5
+    # Driving 30 m into the route's exit ends the episode with success.
+    ego = unwrapped.vehicle
+    unwrapped.road.vehicles = [ego]
+    ego.position, ego.heading = exit_lane.position(30.0, 0.0), exit_lane.heading_at(30.0)
+    _, _, terminated, _, info = env.step(np.zeros(2, dtype=np.float32))
+    assert terminated and info["is_success"]
+
+
+def test_intersection_wrong_exit_is_no_success():
+    env = make("DACERF-Intersection-v0", routes=["left"])
+    env.reset(seed=0)
+    ego = env.unwrapped.vehicle
+    env.unwrapped.road.vehicles = [ego]
+    wrong_exit = env.unwrapped.road.network.get_lane(("il2", "o2", 0))
+    ego.position, ego.heading = wrong_exit.position(30.0, 0.0), wrong_exit.heading_at(30.0)
+    _, _, terminated, _, info = env.step(np.zeros(2, dtype=np.float32))
+    assert terminated and not info["is_success"]
+
+
+def test_density_changes_vehicle_count():
+    counts = {}
+    for density in ("sparse", "normal", "dense"):
+        env = gym.make("DACERF-Multilane-v0", density=density)
+        env.reset(seed=0)
+        assert len(env.unwrapped.road.vehicles) - 1 == env.unwrapped.config["vehicles_count"]
+        counts[density] = len(env.unwrapped.road.vehicles)
+        env = gym.make("DACERF-Intersection-v0", density=density)
+        vehicles = []
+        for seed in range(3):
+            env.reset(seed=seed)
+            vehicles.append(len(env.unwrapped.road.vehicles))
+        counts[f"intersection {density}"] = np.mean(vehicles)
+    assert counts["sparse"] < counts["normal"] < counts["dense"]
+    assert counts["intersection sparse"] < counts["intersection normal"] < counts["intersection dense"]
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_seeded_resets_are_identical(env_id):
+    env = make(env_id)
+    actions = np.random.default_rng(0).uniform(PAPER_INCREMENT_LOW, PAPER_INCREMENT_HIGH, (10, 2)).astype(np.float32)
+
+    def rollout(seed):
+        obs = [env.reset(seed=seed)[0]]
+        for action in actions:
+            obs.append(env.step(action)[0])
+            obs.append(np.array([len(env.unwrapped.road.vehicles)], dtype=np.float32))
+        return np.concatenate(obs)
+
+    first, second = rollout(5), rollout(5)
+    np.testing.assert_array_equal(first, second)
+    assert not np.array_equal(first[:OBS_SIZE], rollout(6)[:OBS_SIZE])
+
+
+def test_bad_kwargs_raise_clear_errors():
+    with pytest.raises(ValueError, match="'sparse', 'normal', 'dense'"):
+        gym.make("DACERF-Multilane-v0", density="heavy")
+    with pytest.raises(ValueError, match="Unknown config key.*'lane_count'"):
+        gym.make("DACERF-Multilane-v0", config={"lane_count": 4})
+    with pytest.raises(ValueError, match="Unknown config key.*'observation'"):  # replaced by ours, not a silent no-op
+        gym.make("DACERF-Intersection-v0", config={"observation": {"type": "Kinematics"}})
+    with pytest.raises(TypeError, match="densty"):
+        gym.make("DACERF-Multilane-v0", densty="dense")
+    with pytest.raises(ValueError, match="reference_lane"):
+        gym.make("DACERF-Multilane-v0", config={"reference_lane": "up"})
+    with pytest.raises(ValueError, match="routes"):
+        gym.make("DACERF-Intersection-v0", config={"routes": ["diagonal"]})
+    with pytest.raises(ValueError, match="reference_speed_ranges lacks"):
+        gym.make("DACERF-Intersection-v0", config={"reference_speed_ranges": {"left": [4, 6]}})
+    with pytest.raises(ValueError, match="render_mode"):
+        gym.make("DACERF-Intersection-v0", render_mode="video")
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_check_env(env_id):
+    from gymnasium.utils.env_checker import check_env as gym_check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    gym_check_env(make(env_id).unwrapped, skip_render_check=True)
+    sb3_check_env(make(env_id), warn=True)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_rgb_array_rendering(env_id):
+    env = gym.make(env_id, render_mode="rgb_array", config={"duration": 1})
+    env.reset(seed=0)
+    env.step(np.zeros(2, dtype=np.float32))
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3 and frame.std() > 0
+    env.close()
+
+
+def test_subprocess_workers_register_the_ids():
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    vec_env = make_vec_env(
+        "sb3_dacerf:DACERF-Multilane-v0",  # "module:id" makes spawned workers import (and so register) the package
+        n_envs=1,
+        vec_env_cls=SubprocVecEnv,
+        vec_env_kwargs={"start_method": "spawn"},
+        env_kwargs={"density": "sparse", "config": {"duration": 1}},
+    )
+    assert vec_env.reset().shape == (1, OBS_SIZE)
+    vec_env.close()
