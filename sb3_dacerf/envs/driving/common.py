@@ -42,6 +42,7 @@ Reward (every signed term is in ``info["reward_terms"]``; their sum is the rewar
 
 from __future__ import annotations
 
+import math
 import os
 
 # Headless machines render offscreen; SDL's "dummy" driver gives black highway-env frames, "offscreen" does not.
@@ -106,7 +107,7 @@ _REPLACED_STOCK_KEYS = (
 
 def pseudo_huber(error: float, delta: float) -> float:
     """Huber-like penalty: quadratic near zero, linear with slope ``delta`` far from it."""
-    return delta**2 * (np.sqrt(1.0 + (error / delta) ** 2) - 1.0)
+    return delta**2 * (math.sqrt(1.0 + (error / delta) ** 2) - 1.0)
 
 
 class ReferencePath:
@@ -123,6 +124,7 @@ class ReferencePath:
         segments = np.diff(self.points, axis=0)
         self.s = np.concatenate(([0.0], np.cumsum(np.hypot(segments[:, 0], segments[:, 1]))))
         self.curvatures = np.gradient(self.headings, self.s)
+        self._point_list, self._s_list = self.points.tolist(), self.s.tolist()
 
     @classmethod
     def from_lanes(cls, pieces: list[tuple[AbstractLane, float, float]], step: float) -> ReferencePath:
@@ -156,37 +158,37 @@ class ReferencePath:
         """
         offsets = self.points - position
         i = int(np.argmin(np.einsum("ij,ij->i", offsets, offsets)))
-        best = (np.inf, 0.0, 0.0)
+        px, py = float(position[0]), float(position[1])
+        best = (math.inf, 0.0, 0.0)
+        # Scalar math: this runs every step and numpy's per-call cost dominates on 2-vectors.
         for j in (i - 1, i):
             if 0 <= j < len(self.points) - 1:
-                segment = self.points[j + 1] - self.points[j]
-                length = self.s[j + 1] - self.s[j]
-                t = np.clip((position - self.points[j]) @ segment / length**2, 0.0, 1.0)
-                delta = position - (self.points[j] + t * segment)
-                distance = float(np.hypot(*delta))
+                (ax, ay), (bx, by) = self._point_list[j], self._point_list[j + 1]
+                length = self._s_list[j + 1] - self._s_list[j]
+                ux, uy = (bx - ax) / length, (by - ay) / length
+                along = min(max((px - ax) * ux + (py - ay) * uy, 0.0), length)
+                dx, dy = px - ax - along * ux, py - ay - along * uy
+                distance = math.hypot(dx, dy)
                 if distance < best[0]:
-                    lateral = (segment[0] * delta[1] - segment[1] * delta[0]) / length
-                    best = (distance, self.s[j] + t * length, lateral)
-        return float(best[1]), float(best[2])
+                    best = (distance, self._s_list[j] + along, ux * dy - uy * dx)
+        return best[1], best[2]
 
     def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
         Interpolate the path at arc lengths, extended by straight lines beyond both ends.
 
-        :param s: arc lengths [m]
+        :param s: arc lengths [m], a 1-d array
         :return: positions (K, 2) [m], headings (K,) [rad] and curvatures (K,) [1/m]
         """
-        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
         headings = np.interp(s, self.s, self.headings)
-        beyond = np.where(s > self.s[-1], s - self.s[-1], np.minimum(s, 0.0))
-        positions = np.stack(
-            [
-                np.interp(s, self.s, self.points[:, 0]) + beyond * np.cos(headings),
-                np.interp(s, self.s, self.points[:, 1]) + beyond * np.sin(headings),
-            ],
-            axis=-1,
-        )
-        curvatures = np.where(beyond == 0.0, np.interp(s, self.s, self.curvatures), 0.0)
+        positions = np.empty((len(s), 2))
+        positions[:, 0] = np.interp(s, self.s, self.points[:, 0])
+        positions[:, 1] = np.interp(s, self.s, self.points[:, 1])
+        curvatures = np.interp(s, self.s, self.curvatures)
+        if s[0] < 0.0 or s[-1] > self.s[-1]:
+            beyond = np.where(s > self.s[-1], s - self.s[-1], np.minimum(s, 0.0))
+            positions += beyond[:, None] * np.column_stack([np.cos(headings), np.sin(headings)])
+            curvatures[beyond != 0.0] = 0.0
         return positions, headings, curvatures
 
 
@@ -249,13 +251,21 @@ class EgoFrameObservation(ObservationType):
         config = self.env.config
         scene = self.env.observe_scene()
         position_scale, speed_scale = config["position_scale"], config["speed_scale"]
-        ego = scene.ego / np.array([speed_scale, speed_scale, 1.0, 1.0, 1.0])
-        waypoints = scene.waypoints / np.array([position_scale, position_scale, 1.0, 1.0])
-        vehicles = np.zeros((config["surrounding_vehicles"], VEHICLE_FEATURES))
-        nearest = scene.vehicles[: config["surrounding_vehicles"], :5]
-        vehicles[: len(nearest), :5] = nearest / np.array([position_scale, position_scale, 1.0, 1.0, speed_scale])
-        vehicles[: len(nearest), 5] = 1.0
-        return np.concatenate([ego, waypoints.ravel(), vehicles.ravel()]).astype(np.float32)
+        n_waypoints, n_vehicles = config["reference_waypoints"], config["surrounding_vehicles"]
+        waypoints_end = EGO_FEATURES + WAYPOINT_FEATURES * n_waypoints
+        obs = np.zeros(waypoints_end + VEHICLE_FEATURES * n_vehicles, dtype=np.float32)
+        obs[:EGO_FEATURES] = scene.ego
+        obs[:2] /= speed_scale
+        waypoints = obs[EGO_FEATURES:waypoints_end].reshape(n_waypoints, WAYPOINT_FEATURES)
+        waypoints[:] = scene.waypoints
+        waypoints[:, :2] /= position_scale
+        nearest = scene.vehicles[:n_vehicles]
+        vehicles = obs[waypoints_end:].reshape(n_vehicles, VEHICLE_FEATURES)[: len(nearest)]
+        vehicles[:, :5] = nearest[:, :5]
+        vehicles[:, :2] /= position_scale
+        vehicles[:, 4] /= speed_scale
+        vehicles[:, 5] = 1.0
+        return obs
 
 
 @dataclass
@@ -394,52 +404,43 @@ class PaperDrivingMixin:
         """Compute (and keep in ``self.scene``) what the ego perceives, for the observation and the reward."""
         config = self.config
         ego = self.vehicle
-        steering = ego.action["steering"]
-        beta = np.arctan(0.5 * np.tan(steering))
+        beta = math.atan(0.5 * math.tan(ego.action["steering"]))
         ego_state = np.array(
             [
-                ego.speed * np.cos(beta),
-                ego.speed * np.sin(beta),
-                ego.speed * np.sin(beta) / (ego.LENGTH / 2),  # heading rate of the bicycle model
+                ego.speed * math.cos(beta),
+                ego.speed * math.sin(beta),
+                ego.speed * math.sin(beta) / (ego.LENGTH / 2),  # heading rate of the bicycle model
                 *self.action_type.command,
             ]
         )
-        cos_h, sin_h = np.cos(ego.heading), np.sin(ego.heading)
-        to_ego_frame = np.array([[cos_h, sin_h], [-sin_h, cos_h]])
+        cos_h, sin_h = math.cos(ego.heading), math.sin(ego.heading)
+        to_ego_frame_t = np.array([[cos_h, -sin_h], [sin_h, cos_h]])
 
         s, lateral = self.reference.project(ego.position)
         step = self.reference_speed * config["reference_waypoint_interval"]
         points, headings, curvatures = self.reference.at(s + step * np.arange(config["reference_waypoints"]))
         relative_headings = headings - ego.heading
         waypoints = np.column_stack(
-            [(points - ego.position) @ to_ego_frame.T, np.cos(relative_headings), np.sin(relative_headings)]
+            [(points - ego.position) @ to_ego_frame_t, np.cos(relative_headings), np.sin(relative_headings)]
         )
 
-        others = [v for v in self.road.vehicles if v is not ego]
         vehicles = np.zeros((0, 7))
+        others = [v for v in self.road.vehicles if v is not ego]
         if others:
-            positions = np.array([v.position for v in others]) - ego.position
-            distances = np.hypot(positions[:, 0], positions[:, 1])
+            # One array of [x, y, heading, speed, length, width] per vehicle, then vectorised.
+            data = np.array([(*v.position, v.heading, v.speed, v.LENGTH, v.WIDTH) for v in others])
+            data[:, :2] -= ego.position
+            distances = np.hypot(data[:, 0], data[:, 1])
             visible = np.flatnonzero(distances < config["perception_distance"])
-            visible = visible[np.argsort(distances[visible], kind="stable")]
-            if len(visible):
-                relative = np.array([others[i].heading for i in visible]) - ego.heading
-                vehicles = np.column_stack(
-                    [
-                        positions[visible] @ to_ego_frame.T,
-                        np.cos(relative),
-                        np.sin(relative),
-                        [others[i].speed for i in visible],
-                        [others[i].LENGTH for i in visible],
-                        [others[i].WIDTH for i in visible],
-                    ]
-                )
+            data = data[visible[np.argsort(distances[visible], kind="stable")]]
+            relative = data[:, 2] - ego.heading
+            vehicles = np.column_stack([data[:, :2] @ to_ego_frame_t, np.cos(relative), np.sin(relative), data[:, 3:]])
         self.scene = Scene(
             ego=ego_state,
             waypoints=waypoints,
             vehicles=vehicles,
             lateral_error=lateral,
-            heading_error=float(utils.wrap_to_pi(ego.heading - headings[0])),
+            heading_error=float(utils.wrap_to_pi(ego.heading - float(headings[0]))),
             reference_curvature=float(curvatures[0]),
             road_clearance=self._road_clearance(ego.position),
         )
@@ -454,11 +455,11 @@ class PaperDrivingMixin:
         """
         config, scene, ego = self.config, self.scene, self.vehicle
         huber_delta = config["huber_delta"]
-        v_x, _, yaw_rate, acceleration, steering = scene.ego
+        v_x, _, yaw_rate, acceleration, steering = scene.ego.tolist()
         dt = 1.0 / config["policy_frequency"]
-        beta_nominal = np.arcsin(np.clip(scene.reference_curvature * ego.LENGTH / 2, -1.0, 1.0))
-        steering_nominal = np.arctan(2.0 * np.tan(beta_nominal))
-        acceleration_increment, steering_increment = self.action_type.applied_increment
+        beta_nominal = math.asin(min(max(scene.reference_curvature * ego.LENGTH / 2, -1.0), 1.0))
+        steering_nominal = math.atan(2.0 * math.tan(beta_nominal))
+        acceleration_increment, steering_increment = self.action_type.applied_increment.tolist()
 
         safe_front = safe_space = safe_side = safe_rear = 0.0
         if len(scene.vehicles):
@@ -468,12 +469,13 @@ class PaperDrivingMixin:
             ahead = (x > 0) & (gap_lat < 0)  # vehicles in the ego's corridor ahead
             if ahead.any():
                 gap = max(float(gap_long[ahead].min()), 0.0)
-                safe_front = config["rho_front"] * (1 - np.tanh(gap / (max(v_x, 1e-3) * config["safe_time_headway"])))
+                safe_front = config["rho_front"] * (1 - math.tanh(gap / (max(v_x, 1e-3) * config["safe_time_headway"])))
             margin_long, margin_lat = config["safe_space_margin"]
             intrusion = np.clip(np.minimum(1 - gap_long / margin_long, 1 - gap_lat / margin_lat), 0.0, 1.0)
-            safe_space = config["rho_space"] * float(intrusion.sum())
-            safe_side = config["rho_side"] * float(intrusion[gap_long <= 0].sum())
-            safe_rear = config["rho_rear"] * float(intrusion[(x < 0) & (gap_long > 0)].sum())
+            if intrusion.any():
+                safe_space = config["rho_space"] * float(intrusion.sum())
+                safe_side = config["rho_side"] * float(intrusion[gap_long <= 0].sum())
+                safe_rear = config["rho_rear"] * float(intrusion[(x < 0) & (gap_long > 0)].sum())
 
         off_road = scene.road_clearance < 0
         return {
@@ -485,7 +487,7 @@ class PaperDrivingMixin:
             "comfort_yaw_rate": -config["rho_yaw"] * pseudo_huber(yaw_rate, huber_delta),
             "comfort_jerk": -config["rho_jerk"] * pseudo_huber(acceleration_increment / dt, huber_delta),
             "comfort_steering_rate": -config["rho_steer_rate"] * pseudo_huber(steering_increment / dt, huber_delta),
-            "liveness": config["rho_step"] * float(np.clip(v_x, 0.0, 3.0)) / 3.0,
+            "liveness": config["rho_step"] * min(max(v_x, 0.0), 3.0) / 3.0,
             "safe_front": -safe_front,
             "safe_space": -safe_space,
             "safe_side": -safe_side,
@@ -513,6 +515,5 @@ class PaperDrivingMixin:
             "collision": crashed,
             "off_road": off_road,
             "is_success": bool(self._is_success() and not (crashed or off_road)),
-            "action": action,
             "reward_terms": dict(self._reward_terms),
         }

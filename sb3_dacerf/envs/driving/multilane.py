@@ -98,6 +98,7 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         self.reference = ReferencePath.from_lanes([(reference_lane, x0 - 50.0, end)], step=10.0)
 
         behind, ahead = config["traffic_window"]
+        self._pending_entries: list[bool] = []  # vehicles to re-enter: True ahead of the ego, False behind
         for _ in range(config["vehicles_count"]):
             self._place_traffic_vehicle(x0 + behind, x0 + ahead)
 
@@ -137,8 +138,15 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
             dx = vehicle.position[0] - ego_x
             if dx < behind or dx > ahead:
                 self.road.vehicles.remove(vehicle)
-                entry = (ego_x + ahead - 20.0, ego_x + ahead) if dx < behind else (ego_x + behind, ego_x + behind + 20.0)
-                self._place_traffic_vehicle(*entry)
+                self._pending_entries.append(dx < behind)
+        # Entries that find no free spot wait for a later step, so the vehicle count stays constant.
+        self._pending_entries = [
+            enters_ahead
+            for enters_ahead in self._pending_entries
+            if not self._place_traffic_vehicle(
+                *((ego_x + ahead - 20.0, ego_x + ahead) if enters_ahead else (ego_x + behind, ego_x + behind + 20.0))
+            )
+        ]
 
     def _road_clearance(self, position: np.ndarray) -> float:
         lane_width = AbstractLane.DEFAULT_WIDTH

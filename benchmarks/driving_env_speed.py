@@ -1,0 +1,159 @@
+"""
+Environment steps per second of the driving scenarios, beside highway-env's own environments.
+
+For each scenario, in one process, interleaved in rounds (so that machine load hits all alike), with the
+same constant action (zero acceleration / increments, zero steering) at the same policy frequency (10 Hz),
+timing ``env.step`` only (resets are not timed):
+
+- ``highway-env default``: highway-env's ``highway-v0`` / ``intersection-v0`` with ``ContinuousAction`` and
+  ``policy_frequency`` 10, otherwise its defaults (50 vehicles at 15 Hz physics on the highway). This shows
+  the absolute speed a user gets from the stock environment; its traffic differs from ours, so it does
+  not measure our overhead.
+- ``same traffic, highway-env layer``: our environment class (same road, traffic, vehicle counts, 10 Hz
+  physics, vehicle recycling), with highway-env's own ``Kinematics`` observation, ``ContinuousAction`` and
+  reward / termination / info instead of ours. The only difference to ours is the task layer, so
+  ``overhead = t_step(ours) / t_step(this) - 1`` is the cost of our observation / action / reward layer
+  compared with highway-env's: the number that must stay under 15%.
+- ``same traffic, no layer``: the same, with a constant observation and zero reward: the bare simulation;
+  ``t_step(ours) / t_step(this) - 1`` is the full cost of our layer over the simulation it runs on.
+
+Usage::
+
+    python benchmarks/driving_env_speed.py [--steps 100] [--rounds 15] [--density normal]
+
+On a shared machine the load average (printed) moves all numbers; the ratios, measured interleaved, move less.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import gymnasium as gym
+import highway_env  # noqa: F401  (registers highway-v0 / intersection-v0)
+import numpy as np
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.envs.highway_env import HighwayEnv
+from highway_env.envs.intersection_env import IntersectionEnv as HighwayIntersectionEnv
+
+from sb3_dacerf.envs.driving.intersection import IntersectionEnv
+from sb3_dacerf.envs.driving.multilane import MultilaneEnv
+
+
+class StockLayerMultilaneEnv(MultilaneEnv):
+    """Our multi-lane traffic under highway-env's own observation, action and reward."""
+
+    @classmethod
+    def default_config(cls) -> dict:
+        return {**HighwayEnv.default_config(), **super().default_config(), "action": {"type": "ContinuousAction"}}
+
+    define_spaces = AbstractEnv.define_spaces
+    _reward = HighwayEnv._reward
+    _rewards = HighwayEnv._rewards
+    _is_terminated = HighwayEnv._is_terminated
+    _info = AbstractEnv._info
+
+
+class StockLayerIntersectionEnv(IntersectionEnv):
+    """Our intersection traffic under highway-env's own observation, action and reward."""
+
+    @classmethod
+    def default_config(cls) -> dict:
+        stock = HighwayIntersectionEnv.default_config()
+        return {**stock, **super().default_config(), "action": {"type": "ContinuousAction"}}
+
+    define_spaces = AbstractEnv.define_spaces
+    _reward = HighwayIntersectionEnv._reward
+    _rewards = HighwayIntersectionEnv._rewards
+    _is_terminated = HighwayIntersectionEnv._is_terminated
+    _info = HighwayIntersectionEnv._info
+
+
+class NoLayerMixin:
+    """A constant observation and zero reward: the bare simulation of the traffic."""
+
+    def define_spaces(self) -> None:
+        super().define_spaces()
+        self.observation_type.observe = lambda: np.zeros(1, dtype=np.float32)
+
+    def _reward(self, action: np.ndarray) -> float:
+        return 0.0
+
+    def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
+        return {}
+
+
+class NoLayerMultilaneEnv(NoLayerMixin, StockLayerMultilaneEnv):
+    pass
+
+
+class NoLayerIntersectionEnv(NoLayerMixin, StockLayerIntersectionEnv):
+    pass
+
+
+def time_steps(env: gym.Env, steps: int, seed: int) -> float:
+    """
+    :param env: the environment, reset before the first call
+    :param steps: number of steps to time
+    :param seed: seed of the resets after episode ends
+    :return: seconds spent in ``env.step``
+    """
+    action = np.zeros(env.action_space.shape, dtype=np.float32)
+    elapsed = 0.0
+    for i in range(steps):
+        start = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(action)
+        elapsed += time.perf_counter() - start
+        if terminated or truncated:
+            env.reset(seed=seed + i)
+    return elapsed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=100, help="steps per environment and round")
+    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--density", default="normal", choices=["sparse", "normal", "dense"])
+    args = parser.parse_args()
+
+    stock_config = {"action": {"type": "ContinuousAction"}, "policy_frequency": 10}
+    scenarios = {
+        "multilane": {
+            "highway-env default (highway-v0)": lambda: gym.make("highway-v0", config=stock_config),
+            "same traffic, highway-env layer": lambda: StockLayerMultilaneEnv(density=args.density),
+            "same traffic, no layer": lambda: NoLayerMultilaneEnv(density=args.density),
+            "ours (DACERF-Multilane-v0)": lambda: MultilaneEnv(density=args.density),
+        },
+        "intersection": {
+            "highway-env default (intersection-v0)": lambda: gym.make("intersection-v0", config=stock_config),
+            "same traffic, highway-env layer": lambda: StockLayerIntersectionEnv(density=args.density),
+            "same traffic, no layer": lambda: NoLayerIntersectionEnv(density=args.density),
+            "ours (DACERF-Intersection-v0)": lambda: IntersectionEnv(density=args.density),
+        },
+    }
+    envs = {(scenario, name): make() for scenario, makers in scenarios.items() for name, make in makers.items()}
+    for env in envs.values():
+        env.reset(seed=0)
+    elapsed = dict.fromkeys(envs, 0.0)
+    for round_ in range(args.rounds):
+        for key, env in envs.items():
+            elapsed[key] += time_steps(env, args.steps, seed=1000 * round_)
+
+    total_steps = args.steps * args.rounds
+    print(
+        f"density={args.density}, {total_steps} steps per environment, {args.rounds} interleaved rounds, policy 10 Hz, "
+        f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"
+    )
+    for scenario, makers in scenarios.items():
+        print(f"\n{scenario}")
+        for name in makers:
+            print(f"  {name:40s} {total_steps / elapsed[scenario, name]:8.1f} steps/s")
+        names = list(makers)
+        ours, stock_layer, bare = elapsed[scenario, names[3]], elapsed[scenario, names[1]], elapsed[scenario, names[2]]
+        print(f"  overhead vs highway-env's layer, same traffic: {ours / stock_layer - 1:+.1%} (must be < +15%)")
+        print(f"  overhead vs no layer, same traffic:            {ours / bare - 1:+.1%}")
+
+
+if __name__ == "__main__":
+    main()
