@@ -1,26 +1,23 @@
-import math
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
-from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 from torch.nn import functional as F
 
 from sb3_dacerf.common.langevin import langevin_targets
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, check_action_space, check_hyperparameters
 from sb3_dacerf.common.utils import frozen
 from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, MlpPolicy, MultiInputPolicy, VelocityField
 
 SelfDACERF = TypeVar("SelfDACERF", bound="DACERF")
 
 
-class DACERF(OffPolicyAlgorithm):
+class DACERF(TwinCriticAlgorithm):
     """
     Diffusion Actor-Critic with Entropy Regulator via Flow matching (DACER-F).
 
@@ -117,7 +114,7 @@ class DACERF(OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        _check_hyperparameters(
+        check_hyperparameters(
             batch_size=batch_size,
             tau=tau,
             gamma=gamma,
@@ -170,22 +167,6 @@ class DACERF(OffPolicyAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
-    def _setup_model(self) -> None:
-        super()._setup_model()
-        self._create_aliases()
-        # Running mean and running var
-        self.batch_norm_stats = get_parameters_by_name(self.critic, ["running_"])
-        self.batch_norm_stats_target = get_parameters_by_name(self.critic_target, ["running_"])
-
-    def _create_aliases(self) -> None:
-        self.actor = self.policy.actor
-        self.critic = self.policy.critic
-        self.critic_target = self.policy.critic_target
-
-    def _min_q(self, observations: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        """``min_j Q_j(s, a)`` over the critics, shape ``(batch, 1)``."""
-        return th.min(th.cat(self.critic(observations, actions), dim=1), dim=1, keepdim=True).values
-
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
@@ -197,30 +178,14 @@ class DACERF(OffPolicyAlgorithm):
             self._n_updates += 1
             # Replay: a batch (s, a_B, r, s', done), actions a_B in [-1, 1]
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            # For n-step replay, discount factor is gamma**n_steps (when no early termination)
-            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
             observations, actions_buffer = replay_data.observations, replay_data.actions
 
             # Critic update, J_Q: y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s')
-            with th.no_grad():
-                next_actions = self.actor(replay_data.next_observations)
-                next_q_values = th.cat(self.critic_target(replay_data.next_observations, next_actions), dim=1)
-                next_q_values, _ = th.min(next_q_values, dim=1, keepdim=True)
-                target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q_values
-
-            current_q_values = self.critic(observations, actions_buffer)
-            critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q_values) for current_q in current_q_values)
-            assert isinstance(critic_loss, th.Tensor)  # for type checker
-            critic_losses.append(self._checked(critic_loss, "critic loss", replay_data))
-
-            self.critic.optimizer.zero_grad()
-            critic_loss.backward()
-            self.critic.optimizer.step()
+            critic_losses.append(self._update_critic(replay_data))
 
             # Actor update, every `policy_delay` critic updates
             if self._n_updates % self.policy_delay == 0:
-                # The critic optimizer's parameters: all the critic's but a features extractor shared with the actor
-                with frozen(self.critic.optimizer.param_groups[0]["params"]):
+                with frozen(self._critic_parameters()):
                     # Langevin targets a* from the replay actions (Algorithm 1), gradients w.r.t. actions only
                     actions_star = langevin_targets(
                         lambda actions: self._min_q(observations, actions),
@@ -241,9 +206,8 @@ class DACERF(OffPolicyAlgorithm):
                     noise = th.randn_like(actions_star)
                     time = th.rand((actions_star.shape[0], 1), device=actions_star.device)
                     actions_t = (1 - time) * noise + time * actions_star
-                    flow_error = (
-                        (self.actor.velocity(features, actions_t, time) - (actions_star - noise)).pow(2).sum(dim=1, keepdim=True)
-                    )
+                    velocity = self.actor.velocity(features, actions_t, time)
+                    flow_error = (velocity - (actions_star - noise)).pow(2).sum(dim=1, keepdim=True)
 
                     # λ_f ∝ ReLU(Q(s, a*) - Q(s, a_B)), per sample, mean 1 over the batch, times the Q scale
                     gain = F.relu(langevin_gain)
@@ -260,9 +224,7 @@ class DACERF(OffPolicyAlgorithm):
                 self.actor.optimizer.step()
 
             # Target networks: Q̄ <- (1 - τ) Q̄ + τ Q
-            polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-            # Copy running stats, see GH issue #996
-            polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
+            self._update_targets()
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_loss", np.mean(critic_losses))
@@ -284,26 +246,6 @@ class DACERF(OffPolicyAlgorithm):
         actions = self.actor.sample(features, th.randn((features.shape[0], self.actor.action_dim), device=features.device))
         return actions.view(-1, n_samples, self.actor.action_dim).std(dim=1).mean().item()
 
-    def _checked(self, loss: th.Tensor, name: str, replay_data: Any) -> float:
-        """Return the loss as a float; stop before the optimizer step (the model stays usable) if it is not finite."""
-        value = loss.item()
-        if math.isfinite(value):
-            return value
-        suspects = []
-        for field in ("observations", "actions", "rewards", "next_observations"):
-            tensors = getattr(replay_data, field)
-            tensors = tensors.values() if isinstance(tensors, dict) else [tensors]
-            if not all(th.isfinite(tensor).all() for tensor in tensors):
-                suspects.append(field)
-        cause = (
-            f"the replay buffer holds non-finite {', '.join(suspects)}: the environment returned NaN/inf "
-            "(wrap it with stable_baselines3.common.vec_env.VecCheckNan to find the step)"
-            if suspects
-            else "the Q-values diverged: lower the learning rate, scale the rewards down "
-            "(e.g. VecNormalize(norm_reward=True)) or use a smaller tau"
-        )
-        raise RuntimeError(f"DACERF: non-finite {name} ({value}) at update {self._n_updates}; {cause}. No parameter was updated.")
-
     def learn(
         self: SelfDACERF,
         total_timesteps: int,
@@ -321,50 +263,3 @@ class DACERF(OffPolicyAlgorithm):
             reset_num_timesteps=reset_num_timesteps,
             progress_bar=progress_bar,
         )
-
-    def _excluded_save_params(self) -> list[str]:
-        return super()._excluded_save_params() + ["actor", "critic", "critic_target"]  # noqa: RUF005
-
-    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
-        return state_dicts, []
-
-
-def check_action_space(action_space: spaces.Space, algorithm: str) -> None:
-    """
-    Raise a clear error unless ``action_space`` is a bounded continuous Box, the only kind a flow
-    or diffusion policy can generate and rescale.
-
-    :param action_space: The environment's action space
-    :param algorithm: Name of the algorithm, for the message
-    """
-    if not isinstance(action_space, spaces.Box):
-        raise TypeError(
-            f"{algorithm} needs a continuous action space (gymnasium.spaces.Box) but the environment has {action_space}. "
-            "Flow and diffusion policies generate real-valued actions: for discrete actions use DQN, PPO or QR-DQN, "
-            "or give the environment a Box action space (e.g. highway-env's ContinuousAction)."
-        )
-    if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
-        raise ValueError(
-            f"{algorithm} needs a bounded action space to rescale actions to [-1, 1], got low={action_space.low}, "
-            f"high={action_space.high}. Give the Box finite bounds (e.g. gymnasium.wrappers.ClipAction after setting them)."
-        )
-
-
-def _check_hyperparameters(**values: float) -> None:
-    """Reject hyper-parameters outside their valid range with a message naming the range."""
-    rules = {
-        "batch_size": (lambda v: isinstance(v, (int, np.integer)) and v > 0, "a positive integer"),
-        "tau": (lambda v: 0 < v <= 1, "in (0, 1]"),
-        "gamma": (lambda v: 0 <= v <= 1, "in [0, 1]"),
-        "policy_delay": (lambda v: isinstance(v, (int, np.integer)) and v >= 1, "an integer >= 1"),
-        "langevin_steps": (lambda v: isinstance(v, (int, np.integer)) and v >= 0, "an integer >= 0 (0 uses a_B as target)"),
-        "langevin_step_size": (lambda v: v > 0, "> 0"),
-        "langevin_temperature": (lambda v: v >= 0, ">= 0 (0 is noise-free gradient ascent)"),
-        "n_sampling_steps": (lambda v: isinstance(v, (int, np.integer)) and v >= 1, "an integer >= 1"),
-        "flow_matching_coef": (lambda v: v >= 0, ">= 0"),
-    }
-    for name, value in values.items():
-        is_valid, valid_range = rules[name]
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not is_valid(value):
-            raise ValueError(f"Invalid {name}={value!r}: it must be {valid_range}.")
