@@ -45,7 +45,10 @@ def add_vehicle(unwrapped, lane_index, longitudinal: float, speed: float = 20.0)
 
 
 def test_registration_imports_no_simulator():
-    code = "import sys, gymnasium as gym, sb3_dacerf; assert 'highway_env' not in sys.modules; print(sorted(i for i in gym.registry if i.startswith('DACERF-')))"
+    code = (
+        "import sys, gymnasium as gym, sb3_dacerf; assert 'highway_env' not in sys.modules; "
+        "print(sorted(i for i in gym.registry if i.startswith('DACERF-')))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "DACERF-Intersection-v0" in out and "DACERF-Multilane-v0" in out
 

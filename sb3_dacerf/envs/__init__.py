@@ -3,4 +3,4 @@
 Registration only records ids and entry points: no simulator is imported until ``gym.make``.
 """
 
-from sb3_dacerf.envs.driving import register_driving_envs; register_driving_envs()  # noqa: E402, E702
+import sb3_dacerf.envs.driving  # noqa: F401  (registers DACERF-Multilane-v0 and DACERF-Intersection-v0)

@@ -8,7 +8,8 @@ The paper's two driving scenarios on highway-env (extra ``driving``: ``pip insta
 offscreen) and ``config`` (a dict of overrides of the env's ``default_config()``). Observation, action
 and reward are described in :mod:`sb3_dacerf.envs.driving.common`.
 
-Importing this package does not import highway-env: registration records ids and entry points only.
+Importing this package registers the ids (``import sb3_dacerf`` does) without importing highway-env:
+registration records ids and entry points only.
 """
 
 import gymnasium as gym
@@ -24,3 +25,6 @@ def register_driving_envs() -> None:
     for env_id, entry_point in DRIVING_ENV_IDS.items():
         if env_id not in gym.registry:
             gym.register(id=env_id, entry_point=entry_point)
+
+
+register_driving_envs()

@@ -58,7 +58,6 @@ from highway_env.envs.common.abstract import AbstractEnv  # noqa: E402
 from highway_env.envs.common.action import ContinuousAction  # noqa: E402
 from highway_env.envs.common.observation import ObservationType  # noqa: E402
 from highway_env.road.lane import AbstractLane  # noqa: E402
-from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
 
 DENSITIES = ("sparse", "normal", "dense")
 
@@ -238,34 +237,31 @@ class IncrementalAction(ContinuousAction):
 class EgoFrameObservation(ObservationType):
     """The paper's flat ego-frame observation; see the module docstring for layout and scaling."""
 
-    def space(self) -> spaces.Box:
-        config = self.env.config
-        size = (
-            EGO_FEATURES
-            + WAYPOINT_FEATURES * config["reference_waypoints"]
-            + VEHICLE_FEATURES * config["surrounding_vehicles"]
+    def __init__(self, env: AbstractEnv, **kwargs) -> None:
+        super().__init__(env)
+        config = env.config
+        self.n_waypoints, self.n_vehicles = config["reference_waypoints"], config["surrounding_vehicles"]
+        position, speed = 1.0 / config["position_scale"], 1.0 / config["speed_scale"]
+        # One multiplier per observation entry: scaling is then a single vector product.
+        self.scale = np.concatenate(
+            [
+                [speed, speed, 1.0, 1.0, 1.0],
+                np.tile([position, position, 1.0, 1.0], self.n_waypoints),
+                np.tile([position, position, 1.0, 1.0, speed, 1.0], self.n_vehicles),
+            ]
         )
-        return spaces.Box(-np.inf, np.inf, shape=(size,), dtype=np.float32)
+
+    def space(self) -> spaces.Box:
+        return spaces.Box(-np.inf, np.inf, shape=self.scale.shape, dtype=np.float32)
 
     def observe(self) -> np.ndarray:
-        config = self.env.config
         scene = self.env.observe_scene()
-        position_scale, speed_scale = config["position_scale"], config["speed_scale"]
-        n_waypoints, n_vehicles = config["reference_waypoints"], config["surrounding_vehicles"]
-        waypoints_end = EGO_FEATURES + WAYPOINT_FEATURES * n_waypoints
-        obs = np.zeros(waypoints_end + VEHICLE_FEATURES * n_vehicles, dtype=np.float32)
-        obs[:EGO_FEATURES] = scene.ego
-        obs[:2] /= speed_scale
-        waypoints = obs[EGO_FEATURES:waypoints_end].reshape(n_waypoints, WAYPOINT_FEATURES)
-        waypoints[:] = scene.waypoints
-        waypoints[:, :2] /= position_scale
-        nearest = scene.vehicles[:n_vehicles]
-        vehicles = obs[waypoints_end:].reshape(n_vehicles, VEHICLE_FEATURES)[: len(nearest)]
-        vehicles[:, :5] = nearest[:, :5]
-        vehicles[:, :2] /= position_scale
-        vehicles[:, 4] /= speed_scale
-        vehicles[:, 5] = 1.0
-        return obs
+        vehicles = np.zeros((self.n_vehicles, VEHICLE_FEATURES))
+        nearest = scene.vehicles[: self.n_vehicles, :5]
+        vehicles[: len(nearest), :5] = nearest
+        vehicles[: len(nearest), 5] = 1.0
+        obs = np.concatenate([scene.ego, scene.waypoints.ravel(), vehicles.ravel()]) * self.scale
+        return obs.astype(np.float32)
 
 
 @dataclass
@@ -420,9 +416,9 @@ class PaperDrivingMixin:
         step = self.reference_speed * config["reference_waypoint_interval"]
         points, headings, curvatures = self.reference.at(s + step * np.arange(config["reference_waypoints"]))
         relative_headings = headings - ego.heading
-        waypoints = np.column_stack(
-            [(points - ego.position) @ to_ego_frame_t, np.cos(relative_headings), np.sin(relative_headings)]
-        )
+        waypoints = np.empty((len(points), WAYPOINT_FEATURES))
+        waypoints[:, :2] = (points - ego.position) @ to_ego_frame_t
+        waypoints[:, 2], waypoints[:, 3] = np.cos(relative_headings), np.sin(relative_headings)
 
         vehicles = np.zeros((0, 7))
         others = [v for v in self.road.vehicles if v is not ego]
@@ -434,7 +430,9 @@ class PaperDrivingMixin:
             visible = np.flatnonzero(distances < config["perception_distance"])
             data = data[visible[np.argsort(distances[visible], kind="stable")]]
             relative = data[:, 2] - ego.heading
-            vehicles = np.column_stack([data[:, :2] @ to_ego_frame_t, np.cos(relative), np.sin(relative), data[:, 3:]])
+            vehicles = np.empty((len(data), 7))
+            vehicles[:, :2] = data[:, :2] @ to_ego_frame_t
+            vehicles[:, 2], vehicles[:, 3], vehicles[:, 4:] = np.cos(relative), np.sin(relative), data[:, 3:]
         self.scene = Scene(
             ego=ego_state,
             waypoints=waypoints,
@@ -492,8 +490,7 @@ class PaperDrivingMixin:
             "safe_space": -safe_space,
             "safe_side": -safe_side,
             "safe_rear": -safe_rear,
-            "boundary": -config["rho_boundary"]
-            * max(0.0, ego.WIDTH / 2 + config["boundary_threshold"] - scene.road_clearance),
+            "boundary": -config["rho_boundary"] * max(0.0, ego.WIDTH / 2 + config["boundary_threshold"] - scene.road_clearance),
             "collision": -config["collision_penalty"] * float(ego.crashed),
             "off_road": -config["collision_penalty"] * float(off_road),
         }

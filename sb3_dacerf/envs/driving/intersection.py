@@ -8,7 +8,8 @@ U-turn): the reference path is the centre line of the approach lane, the turning
 road network and the exit lane; the U-turn, which the single-lane network lacks, is a keyhole loop
 through the junction box (radius 8.5 m arcs, just above the ego's minimum turning radius of 8.1 m at
 δ = 0.571 rad). The road area is the two 8 m wide roads plus the whole junction box (the solid lines
-highway-env draws along the right-turn lanes at the corners are markings; the U-turn crosses them). Target speed from ``reference_speed_ranges`` of the route (straight 6-9 m/s, left 4-7, right 3-5,
+highway-env draws along the right-turn lanes at the corners are markings; the U-turn crosses them).
+Target speed from ``reference_speed_ranges`` of the route (straight 6-9 m/s, left 4-7, right 3-5,
 U-turn 3-4.5: the steering rate is limited to 0.25 rad/s); random start 20-40 m before the junction
 with small lateral and heading offsets. ``density`` sets the initial vehicle count and the spawn
 probability per step (sparse 5 / 0.03, normal 10 / 0.06 = highway-env's default rate of 0.6 per second,
@@ -58,11 +59,12 @@ def u_turn_points(start: np.ndarray, heading: float, turn_sign: float, step: flo
         s = np.arange(0.0, length, step)
         # Exact arc of constant curvature from (position, psi).
         points.append(
-            position
-            + np.column_stack([np.sin(psi + kappa * s) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * s)]) / kappa
+            position + np.column_stack([np.sin(psi + kappa * s) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * s)]) / kappa
         )
         headings.append(psi + kappa * s)
-        position = position + np.array([np.sin(psi + kappa * length) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * length)]) / kappa
+        position = (
+            position + np.array([np.sin(psi + kappa * length) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * length)]) / kappa
+        )
         psi = psi + kappa * length
     return np.concatenate([*points, [position]]), np.concatenate([*headings, [psi]])
 
