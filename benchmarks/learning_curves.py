@@ -135,7 +135,7 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
     metrics = ["mean_return"] + [m for m in ("arrival_rate", "collision_rate") if frame[m].notna().any()]
     figure, axes = plt.subplots(1, len(metrics), figsize=(5.5 * len(metrics), 3.8), squeeze=False)
     lines = [
-        f"| variant | seeds | steps | final return (mean [95% CI]) | "
+        "| variant | seeds | steps | final return (mean [95% CI]) | "
         + " | ".join(m.replace("_", " ") for m in metrics[1:])
         + (" | " if len(metrics) > 1 else "")
         + "action spread | train minutes |",
