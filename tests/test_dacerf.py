@@ -1,0 +1,264 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import HerReplayBuffer
+from stable_baselines3.common.callbacks import CheckpointCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.envs import BitFlippingEnv, FakeImageEnv, SimpleMultiObsEnv
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.noise import NormalActionNoise
+
+from sb3_dacerf import DACERF
+
+# Small and fast: the behaviour under test does not depend on the network size
+FAST = dict(learning_starts=50, batch_size=32, buffer_size=2_000, policy_kwargs=dict(net_arch=[32, 32]))
+
+
+def test_learns_on_box_observations_and_logs_the_paper_quantities(tmp_path):
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, **FAST)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(300, log_interval=1)
+    header = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
+    for key in ("critic_loss", "actor_loss", "flow_matching_loss", "langevin_gain", "lambda_f", "action_spread", "n_updates"):
+        assert f"train/{key}" in header
+    assert model._n_updates == 250
+    assert model.actor.n_sampling_steps == 1
+
+
+def test_paper_defaults():
+    model = DACERF("MlpPolicy", "Pendulum-v1")
+    assert (model.tau, model.policy_delay, model.gamma) == (0.001, 3, 0.99)
+    assert (model.langevin_steps, model.langevin_step_size, model.langevin_temperature) == (20, 0.03, 0.01)
+    assert model.actor.n_sampling_steps == 1
+    assert model.policy.critic.n_critics == 2
+    assert model.policy.actor is model.actor and model.policy.critic_target is model.critic_target
+
+
+def test_policy_delay_updates_the_actor_every_third_critic_update():
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, policy_delay=3, **FAST)
+    model.learn(60)  # fill the buffer past learning_starts
+    actor_before = [p.clone() for p in model.actor.parameters()]
+    critic_before = [p.clone() for p in model.critic.parameters()]
+    model.train(gradient_steps=2, batch_size=32)  # updates 11 and 12: only 12 is an actor update
+    model._n_updates = 13
+    model.train(gradient_steps=1, batch_size=32)  # update 14: critic only
+    assert not all(th.equal(a, b) for a, b in zip(critic_before, model.critic.parameters()))
+    changed = [not th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters())]
+    assert all(changed)
+    actor_after = [p.clone() for p in model.actor.parameters()]
+    model.train(gradient_steps=1, batch_size=32)  # update 15: actor update
+    assert not th.equal(actor_after[0], next(model.actor.parameters()))
+
+
+def test_image_observations_with_cnn_policy():
+    env = FakeImageEnv(action_dim=2, screen_height=40, screen_width=40, n_channels=1, discrete=False)
+    model = DACERF("CnnPolicy", env, seed=0, learning_starts=20, batch_size=8, buffer_size=200, policy_kwargs=dict(net_arch=[16]))
+    model.learn(40)
+    action, _ = model.predict(env.observation_space.sample(), deterministic=True)
+    assert action.shape == env.action_space.shape and env.action_space.contains(action)
+
+
+def test_dict_observations_with_multi_input_policy():
+    env = SimpleMultiObsEnv(random_start=False, discrete_actions=False)
+    model = DACERF("MultiInputPolicy", env, seed=0, **FAST)
+    model.learn(100)
+    action, _ = model.predict(env.observation_space.sample(), deterministic=True)
+    assert action.shape == env.action_space.shape
+
+
+def test_her_replay_buffer():
+    env = BitFlippingEnv(n_bits=4, continuous=True, max_steps=4)
+    model = DACERF(
+        "MultiInputPolicy",
+        env,
+        replay_buffer_class=HerReplayBuffer,
+        replay_buffer_kwargs=dict(n_sampled_goal=2, goal_selection_strategy="future"),
+        seed=0,
+        **FAST,
+    )
+    model.learn(150)
+    assert model.replay_buffer.size() > 0 and model._n_updates > 0
+
+
+def test_vec_env_train_freq_gradient_steps_and_action_noise():
+    env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
+    noise = NormalActionNoise(np.zeros(1), 0.1 * np.ones(1))
+    model = DACERF("MlpPolicy", env, train_freq=(2, "step"), gradient_steps=3, action_noise=noise, seed=0, **FAST)
+    model.learn(200)
+    assert model.num_timesteps == 200
+    # one rollout = 2 steps x 2 envs; 3 gradient steps after each rollout that ends past learning_starts
+    assert model._n_updates == 3 * sum(1 for timesteps in range(4, 201, 4) if timesteps > 50)
+
+
+def test_shared_features_extractor_and_separate_net_arch():
+    model = DACERF(
+        "MlpPolicy",
+        "Pendulum-v1",
+        policy_kwargs=dict(net_arch=dict(pi=[16], qf=[24, 24]), share_features_extractor=True),
+        seed=0,
+        learning_starts=50,
+        batch_size=16,
+    )
+    assert model.critic.features_extractor is model.actor.features_extractor
+    assert [m.out_features for m in model.actor.velocity_net if isinstance(m, th.nn.Linear)] == [16, 1]
+    assert [m.out_features for m in model.critic.qf0 if isinstance(m, th.nn.Linear)] == [24, 24, 1]
+    model.learn(100)
+
+
+def test_save_load_gives_identical_deterministic_predictions(tmp_path):
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, n_sampling_steps=2, **FAST)
+    model.learn(120)
+    observations = np.stack([model.observation_space.sample() for _ in range(16)])
+    actions, _ = model.predict(observations, deterministic=True)
+    again, _ = model.predict(observations, deterministic=True)
+    np.testing.assert_array_equal(actions, again)
+
+    model.save(tmp_path / "dacerf")
+    loaded = DACERF.load(tmp_path / "dacerf")
+    np.testing.assert_array_equal(loaded.predict(observations, deterministic=True)[0], actions)
+    assert loaded.actor.n_sampling_steps == 2
+    assert (loaded.langevin_steps, loaded.policy_delay, loaded.tau) == (20, 3, 0.001)
+    for key, value in model.actor.optimizer.state_dict()["state"][0].items():
+        assert th.equal(value, loaded.actor.optimizer.state_dict()["state"][0][key])
+
+
+def test_resumed_training_with_saved_replay_buffer(tmp_path):
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, **FAST)
+    model.learn(100)
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer")
+    size = model.replay_buffer.size()
+
+    loaded = DACERF.load(tmp_path / "model", env=gym.make("Pendulum-v1"))
+    loaded.load_replay_buffer(tmp_path / "buffer")
+    assert loaded.replay_buffer.size() == size
+    n_updates = loaded._n_updates
+    loaded.learn(50, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 150
+    assert loaded._n_updates == n_updates + 50
+
+
+def test_same_seed_same_training():
+    def train(seed: int) -> list[th.Tensor]:
+        model = DACERF("MlpPolicy", "Pendulum-v1", seed=seed, **FAST)
+        model.learn(120)
+        return [p.detach().clone() for p in model.policy.parameters()]
+
+    first, second, other = train(3), train(3), train(4)
+    assert all(th.equal(a, b) for a, b in zip(first, second))
+    assert not all(th.equal(a, b) for a, b in zip(first, other))
+
+
+def test_callbacks_and_tensorboard(tmp_path):
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, tensorboard_log=str(tmp_path / "tb"), **FAST)
+    model.learn(100, callback=CheckpointCallback(save_freq=50, save_path=str(tmp_path / "ckpt")), progress_bar=True)
+    assert len(list((tmp_path / "ckpt").glob("*.zip"))) == 2
+    assert list((tmp_path / "tb").glob("DACERF_1/events.out.tfevents.*"))
+
+
+@pytest.mark.parametrize("optimizer_class", ["RAD", "rad"])
+def test_rad_optimizer_by_name_and_class(optimizer_class, tmp_path):
+    from rad.optim import RAD
+
+    model = DACERF(
+        "MlpPolicy",
+        "Pendulum-v1",
+        policy_kwargs=dict(net_arch=[32], optimizer_class=optimizer_class, optimizer_kwargs=dict(zeta=1.0)),
+        learning_starts=50,
+        batch_size=16,
+    )
+    assert isinstance(model.actor.optimizer, RAD) and model.actor.optimizer.defaults["zeta"] == 1.0
+    model.learn(80)
+    model.save(tmp_path / "rad")
+    assert isinstance(DACERF.load(tmp_path / "rad").critic.optimizer, RAD)
+    assert isinstance(DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(optimizer_class=RAD)).critic.optimizer, RAD)
+
+
+def test_missing_rad_package_names_the_install_command(monkeypatch):
+    monkeypatch.setitem(__import__("sys").modules, "rad.optim", None)
+    with pytest.raises(ImportError, match="pip install pytorch-rad"):
+        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(optimizer_class="RAD"))
+
+
+def test_unknown_optimizer_name():
+    with pytest.raises(ValueError, match="Unknown optimizer 'Adamm'"):
+        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(optimizer_class="Adamm"))
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1"])
+def test_discrete_actions_are_refused_with_advice(env_id):
+    with pytest.raises(TypeError, match="continuous action space.*Discrete\\(2\\).*DQN"):
+        DACERF("MlpPolicy", env_id)
+
+
+def test_multi_discrete_actions_are_refused():
+    env = SimpleMultiObsEnv(discrete_actions=True)
+    with pytest.raises(TypeError, match="needs a continuous action space"):
+        DACERF("MultiInputPolicy", env)
+
+
+class UnboundedActions(gym.Env):
+    observation_space = spaces.Box(-1, 1, (2,), np.float32)
+    action_space = spaces.Box(-np.inf, np.inf, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+def test_unbounded_actions_are_refused():
+    with pytest.raises(ValueError, match="bounded action space"):
+        DACERF("MlpPolicy", UnboundedActions())
+
+
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("langevin_steps", -1),
+        ("langevin_steps", 2.5),
+        ("langevin_step_size", 0.0),
+        ("langevin_temperature", -0.01),
+        ("tau", 0.0),
+        ("tau", 1.5),
+        ("gamma", 1.2),
+        ("policy_delay", 0),
+        ("n_sampling_steps", 0),
+        ("flow_matching_coef", -1.0),
+        ("batch_size", 0),
+    ],
+)
+def test_invalid_hyperparameters(name, value):
+    with pytest.raises(ValueError, match=f"Invalid {name}="):
+        DACERF("MlpPolicy", "Pendulum-v1", **{name: value})
+
+
+class NanRewardPendulum(gym.Wrapper):
+    def step(self, action):
+        observation, _, terminated, truncated, info = self.env.step(action)
+        return observation, float("nan"), terminated, truncated, info
+
+
+def test_non_finite_rewards_stop_training_with_the_cause_and_keep_the_model():
+    model = DACERF("MlpPolicy", NanRewardPendulum(gym.make("Pendulum-v1")), seed=0, **FAST)
+    parameters = [p.clone() for p in model.policy.parameters()]
+    with pytest.raises(RuntimeError, match="non-finite critic loss.*non-finite rewards.*VecCheckNan"):
+        model.learn(100)
+    assert all(th.equal(a, b) for a, b in zip(parameters, model.policy.parameters()))
+    model.predict(model.observation_space.sample(), deterministic=True)
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_training_and_prediction(tmp_path):
+    model = DACERF("MlpPolicy", "Pendulum-v1", device="cuda", seed=0, **FAST)
+    model.learn(120)
+    assert all(p.device.type == "cuda" for p in model.policy.parameters())
+    model.save(tmp_path / "cuda")
+    cpu_model = DACERF.load(tmp_path / "cuda", device="cpu")
+    observation = model.observation_space.sample()
+    np.testing.assert_allclose(
+        cpu_model.predict(observation, deterministic=True)[0], model.predict(observation, deterministic=True)[0], atol=1e-5
+    )

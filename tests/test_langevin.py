@@ -1,0 +1,65 @@
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_dacerf.common.langevin import langevin_targets
+from sb3_dacerf.common.utils import frozen
+
+
+def quadratic_q(mean: th.Tensor):
+    """Q(a) = -||a - mean||² / 2, whose Boltzmann density exp(Q / α) is N(mean, α I)."""
+    return lambda actions: -0.5 * (actions - mean).pow(2).sum(dim=1, keepdim=True)
+
+
+def test_quadratic_energy_gives_gaussian_of_mean_mu_and_variance_alpha():
+    th.manual_seed(0)
+    n_samples, step_size, temperature = 20_000, 0.01, 0.05
+    mean = th.tensor([0.3, -0.2])
+    start = th.zeros((n_samples, 2))
+    samples = langevin_targets(
+        quadratic_q(mean), start, n_steps=1500, step_size=step_size, temperature=temperature, low=-10.0, high=10.0
+    )
+    # Unadjusted Langevin on this energy has stationary variance 2α / (2 - η), 0.5 % above α here
+    expected_variance = 2 * temperature / (2 - step_size)
+    sample_mean = samples.mean(dim=0)
+    sample_variance = samples.var(dim=0)
+    # 5 standard errors of the mean and of the variance estimator
+    assert th.allclose(sample_mean, mean, atol=5 * np.sqrt(expected_variance / n_samples))
+    assert th.allclose(sample_variance, th.full((2,), expected_variance), atol=5 * expected_variance * np.sqrt(2 / n_samples))
+    # and the bias-free target α itself within 2 %
+    assert th.allclose(sample_variance, th.full((2,), temperature), rtol=0.02)
+
+
+def test_targets_stay_in_bounds_and_climb_q():
+    th.manual_seed(1)
+    start = th.rand((512, 3)) * 2 - 1
+    q_function = quadratic_q(th.tensor([5.0, -5.0, 0.0]))  # optimum outside the box
+    targets = langevin_targets(q_function, start, n_steps=20, step_size=0.03, temperature=0.01)
+    assert targets.min() >= -1.0 and targets.max() <= 1.0
+    assert (q_function(targets) > q_function(start)).float().mean() > 0.95
+    assert not targets.requires_grad
+
+
+def test_zero_steps_returns_the_start_actions():
+    start = th.rand((8, 2))
+    assert th.equal(langevin_targets(quadratic_q(th.zeros(2)), start, n_steps=0, step_size=0.03, temperature=0.01), start)
+
+
+def test_gradients_reach_actions_only():
+    th.manual_seed(2)
+    critic = th.nn.Sequential(th.nn.Linear(4, 16), th.nn.ReLU(), th.nn.Linear(16, 1))
+    observations = th.randn((32, 2))
+    start = th.rand((32, 2)) * 2 - 1
+    with frozen(critic.parameters()):
+        targets = langevin_targets(lambda a: critic(th.cat([observations, a], dim=1)), start, 20, 0.03, 0.01)
+    assert all(param.grad is None for param in critic.parameters())
+    assert all(param.requires_grad for param in critic.parameters())
+    assert not th.equal(targets, start)
+
+
+@pytest.mark.parametrize("temperature", [0.0, 0.01])
+def test_zero_temperature_is_deterministic_gradient_ascent(temperature):
+    start = th.zeros((4, 1))
+    first = langevin_targets(quadratic_q(th.ones(1)), start, 10, 0.1, temperature)
+    second = langevin_targets(quadratic_q(th.ones(1)), start, 10, 0.1, temperature)
+    assert th.equal(first, second) == (temperature == 0.0)
