@@ -195,10 +195,10 @@ def test_optimize_two_workers_share_one_study(tmp_path):
         command = [sys.executable, "-m", "sb3_dacerf.zoo", "train"]
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     command += [
-        *["--algo", "dacerf", "--env", "Pendulum-v1", "-n", "100", "--num-threads", "1", "--optimize"],
+        *["--algo", "dacerf", "--env", "Pendulum-v1", "-n", "60", "--num-threads", "1", "--optimize"],
         *["--storage", str(storage), "--study-name", "dacerf-test", "--n-trials", "2", "--n-evaluations", "1"],
         *["--eval-episodes", "1", "--sampler", "random", "--pruner", "none", "--no-optim-plots", "-f", "logs"],
-        *["-params", "learning_starts:80", "policy_kwargs:dict(optimizer_class='RAD')"],
+        *["-params", "learning_starts:50", "policy_kwargs:dict(optimizer_class='RAD')"],
     ]
     workers = [
         subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
