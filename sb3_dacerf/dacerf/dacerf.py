@@ -162,7 +162,8 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
         self.flow_matching_coef = flow_matching_coef
-        self.policy_kwargs["n_sampling_steps"] = n_sampling_steps
+        # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
+        self.policy_kwargs = {**self.policy_kwargs, "n_sampling_steps": n_sampling_steps}
 
         if _init_setup_model:
             self._setup_model()
