@@ -60,15 +60,18 @@ TINY_DACERF = [
 ]
 
 
-def zoo(script: str, *args: str, cwd: Path, timeout: int = 300) -> subprocess.CompletedProcess:
-    """Run an RL Zoo script in ``cwd`` and return the finished process (asserting it succeeded)."""
+def zoo_command(script: str, *args: str) -> tuple[list[str], dict[str, str]]:
+    """Command line and environment that run the RL Zoo script ``rl_zoo3.<script>`` with DACERF registered."""
     if HOOK_INSTALLED:
-        command = [sys.executable, "-m", f"rl_zoo3.{script}", *args]
-        env = os.environ
-    else:
-        command = [sys.executable, "-m", "sb3_dacerf.zoo", script, *args]
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    result = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+        return [sys.executable, "-m", f"rl_zoo3.{script}", *args], dict(os.environ)
+    python_path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    return [sys.executable, "-m", "sb3_dacerf.zoo", script, *args], {**os.environ, "PYTHONPATH": python_path}
+
+
+def zoo(script: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run an RL Zoo script in ``cwd``, check that it succeeded and return it."""
+    command, env = zoo_command(script, *args)
+    result = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, f"{' '.join(command)}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
     return result
 
@@ -188,18 +191,13 @@ def test_sac_on_dmc_reads_package_yaml(tmp_path):
 
 def test_optimize_two_workers_share_one_study(tmp_path):
     storage = tmp_path / "study.log"
-    if HOOK_INSTALLED:
-        command = [sys.executable, "-m", "rl_zoo3.train"]
-        env = os.environ
-    else:
-        command = [sys.executable, "-m", "sb3_dacerf.zoo", "train"]
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    command += [
+    command, env = zoo_command(
+        "train",
         *["--algo", "dacerf", "--env", "Pendulum-v1", "-n", "60", "--num-threads", "1", "--optimize"],
         *["--storage", str(storage), "--study-name", "dacerf-test", "--n-trials", "2", "--n-evaluations", "1"],
-        *["--eval-episodes", "1", "--sampler", "random", "--pruner", "none", "--no-optim-plots", "-f", "logs"],
+        *["--eval-episodes", "1", "--sampler", "random", "--pruner", "none", "--no-optim-plots", "-f", "logs", "-uuid"],
         *["-params", "learning_starts:50", "policy_kwargs:dict(optimizer_class='RAD')"],
-    ]
+    )
     workers = [
         subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         for _ in range(2)
