@@ -44,7 +44,8 @@ if __name__ == "__main__":
     parser.add_argument("--repeats", type=int, default=3, help="best of this many runs (the machine may be shared)")
     args = parser.parse_args()
 
-    print(f"mujoco {mujoco.__version__}, {platform.python_implementation()} {platform.python_version()}, {platform.processor() or platform.machine()}")
+    python = f"{platform.python_implementation()} {platform.python_version()}"
+    print(f"mujoco {mujoco.__version__}, {python}, {platform.processor() or platform.machine()}")
     for env_id in args.env_ids:
         runs = [steps_per_second(env_id, args.steps, seed) for seed in range(args.repeats)]
         print(f"{env_id:<28} {max(runs):>8,.0f} steps/s (best of {args.repeats}; all: {', '.join(f'{r:,.0f}' for r in runs)})")

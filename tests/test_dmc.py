@@ -62,7 +62,8 @@ def test_tasks_are_dm_control_suite_without_lqr():
 
 
 def test_registering_imports_no_simulator():
-    result = _python("import sys, gymnasium, sb3_dacerf; print('DMC-dog-run-v0' in gymnasium.registry, 'dm_control' in sys.modules)")
+    code = "import sys, gymnasium, sb3_dacerf; print('DMC-dog-run-v0' in gymnasium.registry, 'dm_control' in sys.modules)"
+    result = _python(code)
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["True", "False"]
 

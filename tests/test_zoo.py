@@ -161,11 +161,12 @@ def test_train_enjoy_record_video_continue(tmp_path):
     assert dict(config)["langevin_step_size"] == 0.03
     assert list((tmp_path / "tb" / "Pendulum-v1").glob("*/events.out.tfevents.*"))
 
-    enjoy = zoo("enjoy", "--algo", "dacerf", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1", "-n", "50", "--no-render", cwd=tmp_path)
+    run_args = ["--algo", "dacerf", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
+    enjoy = zoo("enjoy", *run_args, "-n", "50", "--no-render", cwd=tmp_path)
     assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
 
     pytest.importorskip("moviepy")
-    zoo("record_video", "--algo", "dacerf", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1", "-n", "20", "-o", "videos", cwd=tmp_path)
+    zoo("record_video", *run_args, "-n", "20", "-o", "videos", cwd=tmp_path)
     assert list((tmp_path / "videos").glob("*.mp4"))
 
     resumed = zoo(
