@@ -30,10 +30,14 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-noise": ("DACERF", dict(action_noise_std=0.1)),
     "dacerf-steps3": ("DACERF", dict(n_sampling_steps=3)),
     "dacerf-tau005": ("DACERF", dict(tau=0.005)),
-    "dacerf-tau005-noise": ("DACERF", dict(tau=0.005, action_noise_std=0.1)),
     "dacerf-tau005-fm01": ("DACERF", dict(tau=0.005, flow_matching_coef=0.1)),
-    "dacerf-rad": ("DACERF", dict(policy_kwargs=dict(optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16)))),
-    "dacerf-rad-zeta1": ("DACERF", dict(policy_kwargs=dict(optimizer_class="RAD", optimizer_kwargs=dict(zeta=1.0)))),
+    # the short-budget remedy: SAC's tau and Gaussian action noise (see README, "Exploration")
+    "dacerf-tuned": ("DACERF", dict(tau=0.005, action_noise_std=0.1)),
+    "dacerf-tuned-rad": ("DACERF", dict(tau=0.005, action_noise_std=0.1, policy_kwargs=dict(optimizer_class="RAD"))),
+    "dacerf-tuned-rad-zeta1": (
+        "DACERF",
+        dict(tau=0.005, action_noise_std=0.1, policy_kwargs=dict(optimizer_class="RAD", optimizer_kwargs=dict(zeta=1.0))),
+    ),
     "dacer": ("DACER", {}),
     "sac": ("SAC", {}),
     "td3": ("TD3", {}),
