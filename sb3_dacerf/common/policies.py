@@ -5,6 +5,7 @@ from typing import Any, ClassVar
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     FlattenExtractor,
@@ -14,6 +15,64 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_dacerf.common.optim import get_optimizer_class
+
+
+class GenerativeActor(BasePolicy):
+    """
+    Base of the actors of this package: a network of ``(state features, action, time)`` that a sampler turns
+    from noise into an action in [-1, 1] (``squash_output``: the algorithm rescales to the action space's bounds).
+
+    Subclasses implement ``forward(obs, deterministic)``.
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param net_arch: Hidden layer sizes of the network
+    :param features_extractor: Network to extract features
+        (a CNN when using images, a nn.Flatten() layer otherwise)
+    :param features_dim: Number of features
+    :param activation_fn: Activation function
+    :param normalize_images: Whether to normalize images or not,
+         dividing by 255.0 (True by default)
+    """
+
+    action_space: spaces.Box
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: nn.Module,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=features_extractor,
+            normalize_images=normalize_images,
+            squash_output=True,
+        )
+        self.net_arch = net_arch
+        self.features_dim = features_dim
+        self.activation_fn = activation_fn
+        self.action_dim = get_action_dim(self.action_space)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                features_dim=self.features_dim,
+                activation_fn=self.activation_fn,
+                features_extractor=self.features_extractor,
+            )
+        )
+        return data
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self(observation, deterministic)
 
 
 class TwinCriticPolicy(BasePolicy):
@@ -44,8 +103,8 @@ class TwinCriticPolicy(BasePolicy):
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
     """
 
-    actor_class: ClassVar[type[BasePolicy]]
-    actor: BasePolicy
+    actor_class: ClassVar[type[GenerativeActor]]
+    actor: GenerativeActor
     critic: ContinuousCritic
     critic_target: ContinuousCritic
 
@@ -149,7 +208,7 @@ class TwinCriticPolicy(BasePolicy):
         )
         return data
 
-    def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> BasePolicy:
+    def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> GenerativeActor:
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
         return self.actor_class(**actor_kwargs).to(self.device)
 

@@ -1,9 +1,6 @@
 from typing import Any
 
 import torch as th
-from gymnasium import spaces
-from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     CombinedExtractor,
@@ -13,10 +10,10 @@ from stable_baselines3.common.torch_layers import (
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
-from sb3_dacerf.common.policies import TwinCriticPolicy
+from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
 
 
-class VelocityField(BasePolicy):
+class VelocityField(GenerativeActor):
     """
     Flow-matching actor of DACER-F: a velocity field ``v_θ(s, a_t, t)`` and its Euler sampler.
 
@@ -25,59 +22,24 @@ class VelocityField(BasePolicy):
     the algorithm rescales [-1, 1] to the action space's bounds. ``deterministic=True`` starts from the
     prior's mean ``a_0 = 0``, so the same observation always gives the same action.
 
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param net_arch: Hidden layer sizes of the velocity network
-    :param features_extractor: Network to extract features
-        (a CNN when using images, a nn.Flatten() layer otherwise)
-    :param features_dim: Number of features
-    :param activation_fn: Activation function
+    Takes the arguments of :class:`sb3_dacerf.common.policies.GenerativeActor` (``observation_space``,
+    ``action_space``, ``net_arch`` of the velocity network, ``features_extractor``, ``features_dim``,
+    ``activation_fn``, ``normalize_images``) and:
+
     :param n_sampling_steps: Number of Euler steps from noise to action
-    :param normalize_images: Whether to normalize images or not,
-         dividing by 255.0 (True by default)
     """
 
-    action_space: spaces.Box
-
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        net_arch: list[int],
-        features_extractor: nn.Module,
-        features_dim: int,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        n_sampling_steps: int = 1,
-        normalize_images: bool = True,
-    ):
-        super().__init__(
-            observation_space,
-            action_space,
-            features_extractor=features_extractor,
-            normalize_images=normalize_images,
-            squash_output=True,
-        )
-        self.net_arch = net_arch
-        self.features_dim = features_dim
-        self.activation_fn = activation_fn
+    def __init__(self, *args: Any, n_sampling_steps: int = 1, **kwargs: Any):
+        super().__init__(*args, **kwargs)
         self.n_sampling_steps = n_sampling_steps
-        self.action_dim = get_action_dim(self.action_space)
         # Input: state features, the point a_t on the path, and the time t
         self.velocity_net = nn.Sequential(
-            *create_mlp(features_dim + self.action_dim + 1, self.action_dim, net_arch, activation_fn)
+            *create_mlp(self.features_dim + self.action_dim + 1, self.action_dim, self.net_arch, self.activation_fn)
         )
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(
-            dict(
-                net_arch=self.net_arch,
-                features_dim=self.features_dim,
-                activation_fn=self.activation_fn,
-                n_sampling_steps=self.n_sampling_steps,
-                features_extractor=self.features_extractor,
-            )
-        )
+        data.update(n_sampling_steps=self.n_sampling_steps)
         return data
 
     def velocity(self, features: th.Tensor, actions: th.Tensor, time: th.Tensor) -> th.Tensor:
@@ -112,9 +74,6 @@ class VelocityField(BasePolicy):
         else:
             noise = th.randn(shape, device=features.device, dtype=features.dtype)
         return self.sample(features, noise)
-
-    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        return self(observation, deterministic)
 
 
 class DACERFPolicy(TwinCriticPolicy):
