@@ -226,10 +226,14 @@ class TwinCriticPolicy(BasePolicy):
         """
         Put the policy in either training or evaluation mode.
 
-        This affects certain modules, such as batch normalisation and dropout.
+        This affects certain modules, such as batch normalisation and dropout. Nothing is done when the actor and
+        the critic are already in that mode: ``predict()`` calls this before every action, and walking all the
+        sub-modules cost as much as the actor's forward pass (switch sub-modules through this method).
 
         :param mode: if true, set to training mode, else set to evaluation mode
         """
+        if self.training == self.actor.training == self.critic.training == mode:
+            return
         self.actor.set_training_mode(mode)
         self.critic.set_training_mode(mode)
         self.training = mode

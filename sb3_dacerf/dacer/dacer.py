@@ -78,7 +78,8 @@ class DACER(TwinCriticAlgorithm):
     ):
         super().__init__(policy, env, learning_rate, tau=tau, policy_kwargs=policy_kwargs, **kwargs)
 
-        self.policy_kwargs["n_diffusion_steps"] = n_diffusion_steps
+        # A copy: the caller's policy_kwargs dict stays reusable
+        self.policy_kwargs = {**self.policy_kwargs, "n_diffusion_steps": n_diffusion_steps}
         self.policy_delay = policy_delay
         self.alpha_learning_rate = alpha_learning_rate
         self.initial_log_alpha = initial_log_alpha
