@@ -169,16 +169,22 @@ def plot(results: dict[str, dict[tuple[str, str], float]], title: str, path: Pat
     figure.savefig(path, dpi=120)
 
 
+def parse_arguments(parser: argparse.ArgumentParser, plot: str) -> argparse.Namespace:
+    """Add the options both speed benchmarks have (--device, --threads, --plot), parse, and apply --threads."""
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1: steadier on a shared machine)")
+    parser.add_argument("--plot", type=Path, default=Path(__file__).with_name(plot), help="where the PNG goes")
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    random.seed(0)
+    return args
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="400 rounds instead of --rounds (about a minute)")
     parser.add_argument("--rounds", type=int, default=4000, help="timed rounds per size (each calls every pair once)")
-    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1: steadier on a shared machine)")
-    parser.add_argument("--plot", type=Path, default=Path(__file__).with_name("inference_latency.png"))
-    args = parser.parse_args()
-    th.set_num_threads(args.threads)
-    random.seed(0)
+    args = parse_arguments(parser, "inference_latency.png")
     rounds = 400 if args.quick else args.rounds
 
     header = (

@@ -17,17 +17,14 @@ Usage::
 """
 
 import argparse
-import random
 import time
-from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-import torch as th
-from inference_latency import ALGORITHMS, SIZES, interleaved_medians, machine_name, make_model, verdict
+from inference_latency import ALGORITHMS, SIZES, interleaved_medians, machine_name, make_model, parse_arguments, verdict
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.logger import Logger
 
@@ -74,12 +71,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="5 rounds, batch 256 only (about 2 minutes)")
     parser.add_argument("--rounds", type=int, default=40, help="timed rounds per (size, batch)")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 512])
-    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1: steadier on a shared machine)")
-    parser.add_argument("--plot", type=Path, default=Path(__file__).with_name("iteration_time.png"))
-    args = parser.parse_args()
-    th.set_num_threads(args.threads)
-    random.seed(0)
+    args = parse_arguments(parser, "iteration_time.png")
     rounds, batch_sizes = (5, [256]) if args.quick else (args.rounds, args.batch_sizes)
 
     header = (
