@@ -2,6 +2,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from torch.nn import functional as F
@@ -31,19 +33,41 @@ class DACERF(TwinCriticAlgorithm):
     :param env: The environment to learn from (if registered in Gym, can be str)
     :param learning_rate: learning rate for the optimizer of the actor and of the critics,
         it can be a function of the current progress remaining (from 1 to 0)
+    :param buffer_size: size of the replay buffer
+    :param learning_starts: how many steps of the model to collect transitions for before learning starts
+    :param batch_size: Minibatch size for each gradient update
     :param tau: the soft update coefficient ("Polyak update", between 0 and 1)
-    :param policy_delay: Policy and target-free actor updates happen once every ``policy_delay`` critic updates
+    :param gamma: the discount factor
+    :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
+        like ``(5, "step")`` or ``(2, "episode")``.
+    :param gradient_steps: How many gradient steps to do after each rollout (see ``train_freq``)
+        Set to ``-1`` means to do as many gradient steps as steps done in the environment
+        during the rollout.
+    :param action_noise: the action noise type (None by default), added to the flow policy's own samples
+        during rollouts (extra exploration, see the README's "Exploration" section)
+    :param replay_buffer_class: Replay buffer class to use (for instance ``HerReplayBuffer``).
+        If ``None``, it will be automatically selected.
+    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
+        at a cost of more complexity.
+    :param n_steps: When n_step > 1, uses n-step return (with the NStepReplayBuffer) when updating the Q-value network.
+    :param policy_delay: The actor is updated once every ``policy_delay`` critic updates
     :param langevin_steps: Number of Langevin steps ``N_l`` that turn replay actions into targets ``a*``
     :param langevin_step_size: Langevin step size ``η_a``
     :param langevin_temperature: Temperature ``α`` of the energy-based target ``exp(Q / α)``
     :param n_sampling_steps: Number of Euler steps of the flow sampler (1 in the paper: one network call per action)
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
+    :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
+        the reported success rate, mean episode length, and mean reward over
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
         ``dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16))``
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
+        debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run.
+        Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
-    :param kwargs: The other arguments of SB3's ``OffPolicyAlgorithm`` (``buffer_size``, ``learning_starts``,
-        ``batch_size``, ``gamma``, ``train_freq``, ``gradient_steps``, ``action_noise``, ``seed``, ``device``, ...),
-        with SAC's defaults: see :class:`sb3_dacerf.common.twin_critic.TwinCriticAlgorithm`
     """
 
     policy: DACERFPolicy
@@ -59,18 +83,55 @@ class DACERF(TwinCriticAlgorithm):
         policy: str | type[DACERFPolicy],
         env: GymEnv | str,
         learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,  # 1e6
+        learning_starts: int = 100,
+        batch_size: int = 256,
         tau: float = 0.001,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
         policy_delay: int = 3,
         langevin_steps: int = 20,
         langevin_step_size: float = 0.03,
         langevin_temperature: float = 0.01,
         n_sampling_steps: int = 1,
         flow_matching_coef: float = 1.0,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
         _init_setup_model: bool = True,
-        **kwargs: Any,
     ):
-        super().__init__(policy, env, learning_rate, tau=tau, policy_kwargs=policy_kwargs, **kwargs)
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+        )
 
         self.policy_delay = policy_delay
         self.langevin_steps = langevin_steps

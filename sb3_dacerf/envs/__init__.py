@@ -2,4 +2,5 @@
 
 Registration only records ids and entry points: no simulator is imported until ``gym.make``.
 """
+
 import sb3_dacerf.envs.dmc  # noqa: F401  (registers the DMC-<domain>-<task>-v0 ids)
