@@ -10,16 +10,6 @@ from stable_baselines3.common.logger import configure
 from sb3_dacerf import DACER
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks gain nothing from threads, and lose 20x on a busy machine (threads wait on each other)."""
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
-
-
 # Small and fast: the behaviour under test does not depend on the network size or the number of steps
 FAST = dict(learning_starts=50, batch_size=32, buffer_size=2_000, n_diffusion_steps=5, policy_kwargs=dict(net_arch=[32, 32]))
 
