@@ -1,17 +1,20 @@
 """What DACER-F and DACER share: twin critics with target networks, trained by the clipped double-Q Bellman loss."""
 
 import math
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBufferSamples
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
-from stable_baselines3.common.type_aliases import PyTorchObs
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 from torch.nn import functional as F
+
+SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAlgorithm")
 
 
 class TwinCriticAlgorithm(OffPolicyAlgorithm):
@@ -19,7 +22,20 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
     Base of the generative-policy actor-critics of this package: an actor ``policy.actor`` that samples actions
     in [-1, 1] when called on observations, and twin critics ``policy.critic`` with targets ``policy.critic_target``.
 
-    Subclasses implement ``train()`` with :meth:`_update_critic` and :meth:`_update_targets` around their actor update.
+    Subclasses take their own hyper-parameters (``policy_delay`` among them), pass the others on to this
+    constructor, then call ``_setup_model()``, which first checks every hyper-parameter of ``HYPERPARAMETER_RULES``
+    found on the algorithm or in ``policy_kwargs``. They implement ``train()`` with :meth:`_update_critic` and
+    :meth:`_update_targets` around their actor update.
+
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
+    :param env: The environment to learn from (if registered in Gym, can be str)
+    :param learning_rate: learning rate for the optimizer of the actor and of the critics,
+        it can be a function of the current progress remaining (from 1 to 0)
+    :param kwargs: The arguments of SB3's ``OffPolicyAlgorithm``, with its defaults (those of SAC):
+        ``buffer_size`` (1e6), ``learning_starts`` (100), ``batch_size`` (256), ``tau`` (0.005), ``gamma`` (0.99),
+        ``train_freq`` (1), ``gradient_steps`` (1), ``action_noise`` (added to the policy's own samples during
+        rollouts), ``replay_buffer_class``, ``replay_buffer_kwargs``, ``optimize_memory_usage``, ``n_steps``,
+        ``policy_kwargs``, ``stats_window_size``, ``tensorboard_log``, ``verbose``, ``device``, ``seed``
     """
 
     policy: BasePolicy
@@ -27,7 +43,25 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
     critic: ContinuousCritic
     critic_target: ContinuousCritic
 
+    def __init__(
+        self,
+        policy: str | type[BasePolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 3e-4,
+        **kwargs: Any,
+    ):
+        if env is not None:
+            # Made here (not in the base class) so the action space is checked before SB3's own assertions
+            env = maybe_make_env(env, kwargs.get("verbose", 0))
+            check_action_space(env.action_space, algorithm=type(self).__name__)
+        # The action space is checked above, with an error that says what to do instead
+        kwargs.update(supported_action_spaces=None, support_multi_env=True, sde_support=False)
+        super().__init__(policy, env, learning_rate, **kwargs)
+
     def _setup_model(self) -> None:
+        # Before anything is built: a wrong value fails here, with its valid range
+        hyperparameters = {**vars(self), **self.policy_kwargs}
+        check_hyperparameters(**{name: value for name, value in hyperparameters.items() if name in HYPERPARAMETER_RULES})
         super()._setup_model()
         self._create_aliases()
         # Running mean and running var
@@ -99,6 +133,25 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
             f"{type(self).__name__}: non-finite {name} ({value}) at update {self._n_updates}; {cause}. No parameter was updated."
         )
 
+    def learn(
+        self: SelfTwinCriticAlgorithm,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str | None = None,
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfTwinCriticAlgorithm:
+        """See :meth:`OffPolicyAlgorithm.learn`; the TensorBoard run is named after the algorithm by default."""
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=type(self).__name__ if tb_log_name is None else tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
     def _excluded_save_params(self) -> list[str]:
         return super()._excluded_save_params() + ["actor", "critic", "critic_target"]  # noqa: RUF005
 
@@ -150,4 +203,8 @@ HYPERPARAMETER_RULES = {
     "langevin_temperature": (lambda v: v >= 0, ">= 0 (0 is noise-free gradient ascent)"),
     "n_sampling_steps": (lambda v: _is_count(v, 1), "an integer >= 1"),
     "flow_matching_coef": (lambda v: v >= 0, ">= 0"),
+    "n_diffusion_steps": (lambda v: _is_count(v, 1), "an integer >= 1"),
+    "alpha_learning_rate": (lambda v: v > 0, "> 0"),
+    "alpha_update_interval": (lambda v: _is_count(v, 1), "an integer >= 1"),
+    "entropy_samples": (lambda v: _is_count(v, 3), "an integer >= 3 (the entropy estimate fits 3 Gaussians)"),
 }

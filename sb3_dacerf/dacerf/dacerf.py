@@ -1,20 +1,17 @@
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from torch.nn import functional as F
 
 from sb3_dacerf.common.langevin import langevin_targets
-from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, check_action_space, check_hyperparameters
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
 from sb3_dacerf.common.utils import frozen
 from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, MlpPolicy, MultiInputPolicy, VelocityField
-
-SelfDACERF = TypeVar("SelfDACERF", bound="DACERF")
 
 
 class DACERF(TwinCriticAlgorithm):
@@ -46,15 +43,15 @@ class DACERF(TwinCriticAlgorithm):
     :param gradient_steps: How many gradient steps to do after each rollout (see ``train_freq``)
         Set to ``-1`` means to do as many gradient steps as steps done in the environment
         during the rollout.
-    :param action_noise: the action noise type (None by default), added to the flow policy's samples
-        during rollouts (extra exploration)
+    :param action_noise: the action noise type (None by default), added to the flow policy's own samples
+        during rollouts (extra exploration, see the README's "Exploration" section)
     :param replay_buffer_class: Replay buffer class to use (for instance ``HerReplayBuffer``).
         If ``None``, it will be automatically selected.
     :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
         at a cost of more complexity.
     :param n_steps: When n_step > 1, uses n-step return (with the NStepReplayBuffer) when updating the Q-value network.
-    :param policy_delay: Policy and target-free actor updates happen once every ``policy_delay`` critic updates
+    :param policy_delay: The actor is updated once every ``policy_delay`` critic updates
     :param langevin_steps: Number of Langevin steps ``N_l`` that turn replay actions into targets ``a*``
     :param langevin_step_size: Langevin step size ``η_a``
     :param langevin_temperature: Temperature ``α`` of the energy-based target ``exp(Q / α)``
@@ -73,15 +70,13 @@ class DACERF(TwinCriticAlgorithm):
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
+    policy: DACERFPolicy
+    actor: VelocityField
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
         "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
     }
-    policy: DACERFPolicy
-    actor: VelocityField
-    critic: ContinuousCritic
-    critic_target: ContinuousCritic
 
     def __init__(
         self,
@@ -114,47 +109,28 @@ class DACERF(TwinCriticAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        check_hyperparameters(
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            policy_delay=policy_delay,
-            langevin_steps=langevin_steps,
-            langevin_step_size=langevin_step_size,
-            langevin_temperature=langevin_temperature,
-            n_sampling_steps=n_sampling_steps,
-            flow_matching_coef=flow_matching_coef,
-        )
-        if env is not None:
-            # Made here (not in the base class) so the action space is checked before SB3's own assertions
-            env = maybe_make_env(env, verbose)
-            check_action_space(env.action_space, algorithm="DACERF")
         super().__init__(
             policy,
             env,
             learning_rate,
-            buffer_size,
-            learning_starts,
-            batch_size,
-            tau,
-            gamma,
-            train_freq,
-            gradient_steps,
-            action_noise,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=optimize_memory_usage,
             n_steps=n_steps,
-            policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
             verbose=verbose,
-            device=device,
             seed=seed,
-            # Checked above, with an error that says what to do instead
-            supported_action_spaces=None,
-            support_multi_env=True,
-            sde_support=False,
+            device=device,
         )
 
         self.policy_delay = policy_delay
@@ -162,7 +138,8 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
         self.flow_matching_coef = flow_matching_coef
-        self.policy_kwargs["n_sampling_steps"] = n_sampling_steps
+        # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
+        self.policy_kwargs = {**self.policy_kwargs, "n_sampling_steps": n_sampling_steps}
 
         if _init_setup_model:
             self._setup_model()
@@ -245,21 +222,3 @@ class DACERF(TwinCriticAlgorithm):
         features = features.repeat_interleave(n_samples, dim=0)
         actions = self.actor.sample(features, th.randn((features.shape[0], self.actor.action_dim), device=features.device))
         return actions.view(-1, n_samples, self.actor.action_dim).std(dim=1).mean().item()
-
-    def learn(
-        self: SelfDACERF,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 4,
-        tb_log_name: str = "DACERF",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SelfDACERF:
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )

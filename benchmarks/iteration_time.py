@@ -1,0 +1,127 @@
+"""
+Training iteration time: one gradient step of DACERF beside DACER (20-step diffusion), SAC and TQC.
+
+A gradient step is what ``model.train()`` does per update, environment excluded: replay sampling, the critic update
+and the actor update amortised over the policy delay. Every algorithm runs its own defaults apart from
+``net_arch=[256, 256]``: DACERF with the paper's 20 Langevin steps, policy delay 3 and one sampling step (no
+shortcut), DACER with 20 diffusion steps, policy delay 2 and Mish activations, SAC and TQC updating their actor
+every step. ``model.train(gradient_steps=6)`` is timed (6 covers both policy delays) and divided by 6; the
+algorithms of one (size, batch) are called in turn, in a new random order each round, and the table gives medians
+and ratios to SAC. DACER's entropy estimate (a Gaussian mixture fitted to 200 actions per state of a batch, once
+every 10,000 updates) is timed apart and given amortised. Spaces as in ``inference_latency.py``; the replay buffer
+holds random transitions.
+
+Usage::
+
+    python benchmarks/iteration_time.py [--quick] [--device cpu|cuda] [--threads 1] [--rounds 40]
+"""
+
+import argparse
+import time
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from inference_latency import ALGORITHMS, SIZES, interleaved_medians, machine_name, make_model, parse_arguments, verdict
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.logger import Logger
+
+from sb3_dacerf import DACER
+
+GRADIENT_STEPS = 6  # a multiple of DACERF's policy delay (3) and DACER's (2)
+BUFFER_SIZE = 10_000
+
+
+def ready_to_train(algorithm: type[BaseAlgorithm], obs_dim: int, action_dim: int, device: str) -> BaseAlgorithm:
+    """A model whose replay buffer is full of random transitions, logging nowhere."""
+    model = make_model(algorithm, obs_dim, action_dim, device, buffer_size=BUFFER_SIZE)
+    buffer = model.replay_buffer
+    rng = np.random.default_rng(0)
+    buffer.observations[:] = rng.normal(size=buffer.observations.shape)
+    buffer.next_observations[:] = rng.normal(size=buffer.next_observations.shape)
+    buffer.actions[:] = rng.uniform(-1, 1, size=buffer.actions.shape)
+    buffer.rewards[:] = rng.normal(size=buffer.rewards.shape)
+    buffer.full = True
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model
+
+
+def measure(obs_dim: int, action_dim: int, batch_size: int, device: str, rounds: int) -> dict[str, float]:
+    """Median seconds per gradient step of each algorithm, and DACER's entropy estimate (seconds per call)."""
+    models = {name: ready_to_train(algorithm, obs_dim, action_dim, device) for name, algorithm in ALGORITHMS.items()}
+    calls = {
+        name: (lambda m=model: m.train(gradient_steps=GRADIENT_STEPS, batch_size=batch_size)) for name, model in models.items()
+    }
+    # Warm-up; it also runs DACER's first entropy estimate (update 1), so that the timed rounds hold none
+    interleaved_medians(calls, 2, synchronize=device == "cuda")
+    medians = {name: value / GRADIENT_STEPS for name, value in interleaved_medians(calls, rounds, device == "cuda").items()}
+    dacer = models["DACER"]
+    assert isinstance(dacer, DACER)
+    observations = dacer.replay_buffer.sample(batch_size).observations
+    start = time.perf_counter()
+    dacer._estimate_entropy(observations)
+    medians["DACER entropy estimate"] = time.perf_counter() - start
+    return medians
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="5 rounds, batch 256 only (about 2 minutes)")
+    parser.add_argument("--rounds", type=int, default=40, help="timed rounds per (size, batch)")
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 512])
+    args = parse_arguments(parser, "iteration_time.png")
+    rounds, batch_sizes = (5, [256]) if args.quick else (args.rounds, args.batch_sizes)
+
+    header = (
+        f"{machine_name()}; device {args.device}; torch.set_num_threads({args.threads}); "
+        f"{rounds} interleaved rounds of train(gradient_steps={GRADIENT_STEPS}){' (--quick)' if args.quick else ''}; "
+        "net_arch [256, 256]"
+    )
+    print(header)
+    results = {
+        (size, batch_size): measure(obs_dim, action_dim, batch_size, args.device, rounds)
+        for size, (obs_dim, action_dim) in SIZES.items()
+        for batch_size in batch_sizes
+    }
+
+    print()
+    columns = [f"{name} (ms)" for name in ALGORITHMS] + [f"{name} / SAC" for name in ALGORITHMS]
+    columns += ["DACER / DACERF", "DACER entropy estimate (s; ms/step)"]
+    print("| size | batch | " + " | ".join(columns) + " |")
+    print("|" + "---|" * (4 + 2 * len(ALGORITHMS)))
+    for (size, batch_size), medians in results.items():
+        estimate = medians["DACER entropy estimate"]
+        print(
+            f"| {size} | {batch_size} | " + " | ".join(f"{1e3 * medians[name]:.1f}" for name in ALGORITHMS) + " | "
+            + " | ".join(f"{medians[name] / medians['SAC']:.2f}" for name in ALGORITHMS) + " | "
+            + f"{medians['DACER'] / medians['DACERF']:.2f} | {estimate:.2f}; {1e3 * estimate / 10_000:.2f} |"
+        )  # fmt: skip
+    print()
+    for (size, batch_size), medians in results.items():
+        to_sac, speedup = medians["DACERF"] / medians["SAC"], medians["DACER"] / medians["DACERF"]
+        print(
+            f"- {size}, batch {batch_size}: DACERF / SAC = {to_sac:.2f} (≤ 2.6 on CPU: {verdict(to_sac <= 2.6)}); "
+            f"DACER / DACERF = {speedup:.2f} (≥ 3.4: {verdict(speedup >= 3.4)})"
+        )
+
+    figure, axes = plt.subplots(1, len(batch_sizes), figsize=(6 * len(batch_sizes), 4), squeeze=False)
+    width = 0.8 / len(ALGORITHMS)
+    for axis, batch_size in zip(axes[0], batch_sizes):
+        for i, name in enumerate(ALGORITHMS):
+            values = [1e3 * results[(size, batch_size)][name] for size in SIZES]
+            axis.bar(np.arange(len(SIZES)) + (i - (len(ALGORITHMS) - 1) / 2) * width, values, width, label=name)
+        axis.set_xticks(np.arange(len(SIZES)), list(SIZES))
+        axis.set_title(f"batch {batch_size}")
+        axis.set_ylabel("median time per gradient step (ms)")
+        axis.grid(axis="y", alpha=0.3)
+    axes[0][0].legend()
+    figure.suptitle(header, fontsize=8)
+    figure.tight_layout()
+    figure.savefig(args.plot, dpi=120)
+    print(f"\nPlot: {args.plot}")
+
+
+if __name__ == "__main__":
+    main()

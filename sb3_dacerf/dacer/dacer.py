@@ -1,0 +1,160 @@
+from typing import Any, ClassVar
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
+
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
+from sb3_dacerf.common.utils import frozen
+from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
+from sb3_dacerf.dacer.policies import CnnPolicy, DACERPolicy, DiffusionActor, MlpPolicy, MultiInputPolicy
+
+
+class DACER(TwinCriticAlgorithm):
+    """
+    Diffusion Actor-Critic with Entropy Regulator (DACER), the diffusion baseline of the DACER-F paper.
+
+    A DDPM policy (``n_diffusion_steps`` reverse steps per action) trained by ``-Q(s, π(s))`` backpropagated
+    through all the denoising steps; twin critics with target networks as in TD3/SAC. A diffusion policy has no
+    tractable log-density, so its entropy is estimated by fitting a Gaussian mixture to ``entropy_samples``
+    actions per state, every ``alpha_update_interval`` updates; the temperature ``α`` is adapted towards
+    ``target_entropy`` from that estimate and only scales the exploration noise added to the actions.
+    Paper: "Diffusion Actor-Critic with Entropy Regulator", Wang et al., NeurIPS 2024 (arXiv:2405.15177);
+    official JAX code: https://github.com/happy-yan/DACER-Diffusion-with-Online-RL
+
+    Differences from the official code: the critics are this package's clipped double-Q critics (shared with
+    DACERF) instead of DSAC-T's distributional critics, there is no built-in reward scaling (its 0.2; use
+    ``VecNormalize`` or a reward wrapper), and the mixture has diagonal rather than full covariances
+    (a full 38 x 38 covariance per component is ill-determined by 200 samples).
+
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
+    :param env: The environment to learn from (if registered in Gym, can be str)
+    :param learning_rate: learning rate for the optimizer of the actor and of the critics,
+        it can be a function of the current progress remaining (from 1 to 0)
+    :param tau: the soft update coefficient ("Polyak update", between 0 and 1)
+    :param policy_delay: Policy and target network updates happen once every ``policy_delay`` critic updates
+    :param n_diffusion_steps: Number of reverse diffusion steps per action (20 in both papers)
+    :param alpha_learning_rate: Learning rate (Adam) of ``log α``
+    :param initial_log_alpha: Initial ``log α`` (the exploration noise starts at ``0.15 exp(initial_log_alpha)``)
+    :param target_entropy: Target entropy of the policy; ``"auto"`` is ``-0.9 * action_dim``
+    :param alpha_update_interval: The entropy is estimated and ``α`` updated once every that many updates
+        (at the first update, then every ``alpha_update_interval``)
+    :param entropy_samples: Number of actions sampled per state for the entropy estimate
+    :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
+        ``dict(net_arch=[256, 256], beta_schedule="linear", exploration_noise_scale=0.1)``
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    :param kwargs: The other arguments of SB3's ``OffPolicyAlgorithm`` (``buffer_size``, ``learning_starts``,
+        ``batch_size``, ``gamma``, ``train_freq``, ``gradient_steps``, ``action_noise`` (added on top of the
+        policy's own exploration noise), ``seed``, ``device``, ...), with SAC's defaults: see
+        :class:`sb3_dacerf.common.twin_critic.TwinCriticAlgorithm`
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+    policy: DACERPolicy
+    actor: DiffusionActor
+
+    def __init__(
+        self,
+        policy: str | type[DACERPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        *,
+        policy_kwargs: dict[str, Any] | None = None,
+        tau: float = 0.005,
+        policy_delay: int = 2,
+        n_diffusion_steps: int = 20,
+        target_entropy: str | float = "auto",
+        alpha_learning_rate: float = 3e-2,
+        initial_log_alpha: float = 1.2,
+        alpha_update_interval: int = 10_000,
+        entropy_samples: int = 200,
+        _init_setup_model: bool = True,
+        **kwargs: Any,
+    ):
+        super().__init__(policy, env, learning_rate, tau=tau, policy_kwargs=policy_kwargs, **kwargs)
+
+        # A copy: the caller's policy_kwargs dict stays reusable
+        self.policy_kwargs = {**self.policy_kwargs, "n_diffusion_steps": n_diffusion_steps}
+        self.policy_delay = policy_delay
+        self.alpha_learning_rate = alpha_learning_rate
+        self.initial_log_alpha = initial_log_alpha
+        self.target_entropy = target_entropy
+        self.alpha_update_interval = alpha_update_interval
+        self.entropy_samples = entropy_samples
+        # Last entropy estimate, for the logs
+        self.entropy = float("nan")
+
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        if self.target_entropy == "auto":
+            self.target_entropy = -0.9 * float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+        self.target_entropy = float(self.target_entropy)
+        # log α lives in the actor (it sets the exploration noise of predict()); only this optimizer changes it
+        self.actor.log_alpha.fill_(self.initial_log_alpha)
+        self.alpha_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.alpha_learning_rate)
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        # Switch to train mode (this affects batch norm / dropout)
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+
+        critic_losses, actor_losses = [], []
+
+        for _ in range(gradient_steps):
+            self._n_updates += 1
+            # Replay: a batch (s, a, r, s', done), actions in [-1, 1]
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+
+            # Critic update, J_Q: y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s') by reverse diffusion
+            critic_losses.append(self._update_critic(replay_data))
+
+            # Actor update, every `policy_delay` critic updates: J_π = -E[min_j Q_j(s, π(s))],
+            # backpropagated through all the denoising steps (the critics' parameters receive no gradient)
+            if self._n_updates % self.policy_delay == 0:
+                with frozen(self._critic_parameters()):
+                    actor_loss = -self._min_q(replay_data.observations, self.actor(replay_data.observations)).mean()
+                actor_losses.append(self._checked(actor_loss, "actor loss", replay_data))
+
+                self.actor.optimizer.zero_grad()
+                actor_loss.backward()
+                self.actor.optimizer.step()
+
+                # Target networks, with the actor as in the official code: Q̄ <- (1 - τ) Q̄ + τ Q
+                self._update_targets()
+
+            # Entropy regulator, at the first update and every `alpha_update_interval` updates (like the official
+            # step counter, which starts at 0): estimate H(π(·|s)) and step log α on J(α) = -log α (H_target - H)
+            if (self._n_updates - 1) % self.alpha_update_interval == 0:
+                self.entropy = self._estimate_entropy(replay_data.observations)
+                # ∂J(α)/∂log α = H - H_target: the noise shrinks while the policy is more random than the target
+                self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, self.entropy - self.target_entropy)
+                self.alpha_optimizer.step()
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/critic_loss", np.mean(critic_losses))
+        if len(actor_losses) > 0:
+            self.logger.record("train/actor_loss", np.mean(actor_losses))
+        self.logger.record("train/alpha", self.actor.log_alpha.exp().item())
+        self.logger.record("train/entropy", self.entropy)
+
+    @th.no_grad()
+    def _estimate_entropy(self, observations: PyTorchObs) -> float:
+        """
+        DACER's entropy estimate: ``entropy_samples`` actions per state (exploration noise included),
+        a 3-component Gaussian mixture fitted to those of each state, its entropy averaged over the states.
+        """
+        features = self.actor.extract_features(observations, self.actor.features_extractor)
+        actions = self.actor.sample(features.repeat_interleave(self.entropy_samples, dim=0))
+        return gaussian_mixture_entropy(actions.view(features.shape[0], self.entropy_samples, -1)).mean().item()
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, saved_variables = super()._get_torch_save_params()
+        return [*state_dicts, "alpha_optimizer"], saved_variables

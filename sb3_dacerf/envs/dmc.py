@@ -1,0 +1,163 @@
+"""DeepMind Control suite tasks as Gymnasium environments with a flat ``float32`` observation.
+
+Every state-based task of ``dm_control.suite`` is registered as ``DMC-<domain>-<task>-v0``
+(dm_control's own domain and task names, e.g. ``DMC-humanoid-stand-v0``, ``DMC-ball_in_cup-catch-v0``),
+beside shimmy's ``dm_control/<domain>-<task>-v0`` ids, which keep a ``Dict`` observation of ``float64``.
+Importing this module registers the ids and imports no simulator: dm-control and shimmy are imported by ``gym.make``.
+The two ``lqr`` tasks are left out: their actuators are unbounded (``±1e10``) and their episodes
+have no time limit, so they have no ``[-1, 1]`` action box nor 1000-step episode.
+"""
+
+import os
+from typing import Any, SupportsFloat
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+# dm_control.suite.ALL_TASKS without ``lqr`` (tests/test_dmc.py checks it against the installed dm-control)
+DMC_TASKS: tuple[tuple[str, str], ...] = (
+    ("acrobot", "swingup"),
+    ("acrobot", "swingup_sparse"),
+    ("ball_in_cup", "catch"),
+    ("cartpole", "balance"),
+    ("cartpole", "balance_sparse"),
+    ("cartpole", "swingup"),
+    ("cartpole", "swingup_sparse"),
+    ("cartpole", "two_poles"),
+    ("cartpole", "three_poles"),
+    ("cheetah", "run"),
+    ("dog", "stand"),
+    ("dog", "walk"),
+    ("dog", "trot"),
+    ("dog", "run"),
+    ("dog", "fetch"),
+    ("finger", "spin"),
+    ("finger", "turn_easy"),
+    ("finger", "turn_hard"),
+    ("fish", "upright"),
+    ("fish", "swim"),
+    ("hopper", "stand"),
+    ("hopper", "hop"),
+    ("humanoid", "stand"),
+    ("humanoid", "walk"),
+    ("humanoid", "run"),
+    ("humanoid", "run_pure_state"),
+    ("humanoid_CMU", "stand"),
+    ("humanoid_CMU", "walk"),
+    ("humanoid_CMU", "run"),
+    ("manipulator", "bring_ball"),
+    ("manipulator", "bring_peg"),
+    ("manipulator", "insert_ball"),
+    ("manipulator", "insert_peg"),
+    ("pendulum", "swingup"),
+    ("point_mass", "easy"),
+    ("point_mass", "hard"),
+    ("quadruped", "walk"),
+    ("quadruped", "run"),
+    ("quadruped", "escape"),
+    ("quadruped", "fetch"),
+    ("reacher", "easy"),
+    ("reacher", "hard"),
+    ("stacker", "stack_2"),
+    ("stacker", "stack_4"),
+    ("swimmer", "swimmer6"),
+    ("swimmer", "swimmer15"),
+    ("walker", "stand"),
+    ("walker", "walk"),
+    ("walker", "run"),
+)
+
+DMC_ENV_IDS: tuple[str, ...] = tuple(f"DMC-{domain}-{task}-v0" for domain, task in DMC_TASKS)
+
+# Every registered task ends its episodes after 1000 control steps (time limit / control timestep)
+DMC_EPISODE_STEPS = 1000
+
+# Tasks whose reset uploads a new terrain to OpenGL (dm_control), so they need a GL backend even without rendering
+_TASKS_NEEDING_GL = frozenset({("quadruped", "escape")})
+
+
+def _no_gl_error(what: str) -> RuntimeError:
+    return RuntimeError(
+        f"{what}, but MuJoCo has no working OpenGL backend (MUJOCO_GL={os.environ.get('MUJOCO_GL', '<unset>')}). "
+        "Without a display, set MUJOCO_GL=egl (GPU or Mesa EGL) or MUJOCO_GL=osmesa (CPU) before Python starts."
+    )
+
+
+class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, Any, np.ndarray]):
+    """
+    A ``dm_control.suite`` task through shimmy, with the observation dict flattened to one ``float32``
+    vector (in the task's observation order) and the action box mapped to ``[-1, 1]``.
+
+    ``reset(seed=...)`` seeds the task's initial-state sampler, so equal seeds give equal episodes.
+    ``env.unwrapped`` is shimmy's ``DmControlCompatibilityV0`` (``env.unwrapped.physics`` is MuJoCo's state).
+
+    :param domain_name: dm_control domain, e.g. ``"humanoid"``
+    :param task_name: task of that domain, e.g. ``"stand"``
+    :param render_mode: ``"rgb_array"`` (needs a MuJoCo OpenGL backend: ``MUJOCO_GL=egl`` or ``osmesa``
+        when there is no display) or ``"human"`` (needs a display)
+    :param render_kwargs: passed to ``physics.render``, e.g. ``dict(height=240, width=320, camera_id=0)``
+    :param task_kwargs: passed to ``dm_control.suite.load`` (``random`` is set by ``reset(seed=...)``)
+    :param environment_kwargs: passed to ``dm_control.suite.load``
+    """
+
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "render_fps": 50}
+
+    def __init__(
+        self,
+        domain_name: str,
+        task_name: str,
+        render_mode: str | None = None,
+        render_kwargs: dict[str, Any] | None = None,
+        task_kwargs: dict[str, Any] | None = None,
+        environment_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        from dm_control import suite
+        from shimmy.dm_control_compatibility import DmControlCompatibilityV0
+
+        dm_env = suite.load(domain_name, task_name, task_kwargs=task_kwargs, environment_kwargs=environment_kwargs)
+        if (domain_name, task_name) in _TASKS_NEEDING_GL:
+            try:
+                _ = dm_env.physics.contexts  # creating the GL context is what fails without a backend
+            # MuJoCo reports a missing OpenGL backend with several exception types (FatalError, RuntimeError, ...)
+            except Exception as error:
+                raise _no_gl_error(f"{domain_name}-{task_name} needs OpenGL at every reset") from error
+        super().__init__(DmControlCompatibilityV0(dm_env, render_mode=render_mode, render_kwargs=render_kwargs))
+        self.metadata = {**self.metadata, "render_fps": round(1.0 / dm_env.control_timestep())}
+
+        # Keys in the task's own order (shimmy's Dict space sorts them)
+        self._obs_keys = tuple(dm_env.observation_spec().keys())
+        n_obs = sum(int(np.prod(spec.shape)) for spec in dm_env.observation_spec().values())
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(n_obs,), dtype=np.float32)
+
+        action_spec = dm_env.action_spec()
+        self._action_low = np.asarray(action_spec.minimum, dtype=np.float64)
+        self._action_scale = (np.asarray(action_spec.maximum, dtype=np.float64) - self._action_low) / 2.0
+        self.action_space = spaces.Box(-1.0, 1.0, shape=action_spec.shape, dtype=np.float32)
+
+    def _flatten(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return np.concatenate([np.asarray(obs[key], dtype=np.float32).ravel() for key in self._obs_keys])
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        obs, info = self.env.reset(seed=seed, options=options)
+        return self._flatten(obs), info
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(self._action_low + (action + 1.0) * self._action_scale)
+        return self._flatten(obs), float(reward), terminated, truncated, info
+
+    def render(self) -> Any:
+        try:
+            return self.env.render()
+        # MuJoCo reports a missing OpenGL backend with several exception types (FatalError, AttributeError, ...)
+        except Exception as error:
+            raise _no_gl_error(f"render_mode={self.render_mode!r} was asked") from error
+
+
+for (_domain, _task), _env_id in zip(DMC_TASKS, DMC_ENV_IDS, strict=True):
+    gym.register(
+        id=_env_id,
+        entry_point="sb3_dacerf.envs.dmc:DMCEnv",
+        max_episode_steps=DMC_EPISODE_STEPS,
+        kwargs={"domain_name": _domain, "task_name": _task},
+    )

@@ -1,0 +1,165 @@
+"""
+RL Zoo integration: ``python -m rl_zoo3.train --algo dacerf --env <id>`` (and ``enjoy``, ``record_video``,
+``--optimize``) with no wrapper script and no ``--conf-file``.
+
+RL Zoo fixes its ``--algo`` choices from ``rl_zoo3.utils.ALGOS`` before it imports ``--gym-packages``, so DACERF
+has to be there earlier: the start-up hook ``sb3_dacerf_zoo_hook`` (installed by ``pip install .``) calls
+:func:`register` on ``rl_zoo3.utils``, ``rl_zoo3.hyperparams_opt`` and ``rl_zoo3.exp_manager`` as soon as each is
+imported. Where the hook is not installed, ``python -m sb3_dacerf.zoo train --algo dacerf ...`` (any RL Zoo script
+name in place of ``train``) registers DACERF and runs the script.
+
+This module is imported only together with RL Zoo: it imports torch, Stable-Baselines3 and DACERF.
+"""
+
+import functools
+import inspect
+import runpy
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import optuna
+import yaml
+
+from sb3_dacerf import DACERF
+
+# Wheels ship the YAML files inside the package; source checkouts and editable installs keep them at the repository root
+HYPERPARAMS_DIR = Path(__file__).parent / "hyperparams"
+if not HYPERPARAMS_DIR.is_dir():
+    HYPERPARAMS_DIR = Path(__file__).parent.parent / "hyperparams"
+
+# Same names as RL Zoo's off-policy samplers
+NET_ARCH = {
+    "small": [64, 64],
+    "medium": [256, 256],
+    "big": [400, 300],
+    "large": [256, 256, 256],
+    "verybig": [512, 512, 512],
+}
+
+
+def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """
+    Turn the values drawn by :func:`sample_dacerf_params` (an Optuna trial's ``params``) into DACERF arguments.
+
+    :param sampled_params: Optuna parameters, as named in :func:`sample_dacerf_params`
+    :param policy_kwargs: ``policy_kwargs`` of the YAML entry (optimizer, ...), which the sampled ``net_arch`` updates
+    :return: keyword arguments for ``DACERF``
+    """
+    hyperparams = sampled_params.copy()
+    hyperparams["batch_size"] = 2 ** hyperparams.pop("batch_size_pow")
+    hyperparams["policy_kwargs"] = {**(policy_kwargs or {}), "net_arch": NET_ARCH[hyperparams.pop("net_arch")]}
+    return hyperparams
+
+
+def sample_dacerf_params(
+    trial: optuna.Trial,
+    n_actions: int,
+    n_envs: int,
+    additional_args: dict[str, Any],
+    policy_kwargs: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """
+    Sampler for DACERF hyper-parameters (RL Zoo's ``HYPERPARAMS_SAMPLER`` signature), centred on the paper's values.
+
+    :param trial: Optuna trial
+    :param n_actions: action dimension (unused: DACERF explores through Langevin noise)
+    :param n_envs: number of environments (unused)
+    :param additional_args: RL Zoo's extra arguments (unused: no HER replay buffer for DACERF)
+    :param policy_kwargs: ``policy_kwargs`` of the YAML entry, kept apart from the sampled ``net_arch``
+    :return: keyword arguments for ``DACERF``
+    """
+    sampled = {
+        "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),
+        # From 2**7=128 to 2**10=1024 (paper: 512)
+        "batch_size_pow": trial.suggest_int("batch_size_pow", 7, 10),
+        "tau": trial.suggest_float("tau", 1e-4, 0.02, log=True),
+        "policy_delay": trial.suggest_int("policy_delay", 1, 5),
+        "langevin_steps": trial.suggest_int("langevin_steps", 5, 40, step=5),
+        "langevin_step_size": trial.suggest_float("langevin_step_size", 0.003, 0.3, log=True),
+        "langevin_temperature": trial.suggest_float("langevin_temperature", 0.001, 0.1, log=True),
+        "n_sampling_steps": trial.suggest_categorical("n_sampling_steps", [1, 2, 4, 8]),
+        "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCH)),
+    }
+    trial.set_user_attr("batch_size", 2 ** sampled["batch_size_pow"])
+    return convert_dacerf_params(sampled, policy_kwargs)
+
+
+def default_config(algo: str, env_id: str) -> str | None:
+    """
+    The YAML file RL Zoo should read when no ``--conf-file`` is given.
+
+    :param algo: RL Zoo algorithm name
+    :param env_id: Gymnasium id
+    :return: ``hyperparams/dacerf.yml`` for DACERF; ``hyperparams/<algo>.yml`` of this package for another
+        algorithm when it has an entry for ``env_id`` (e.g. SAC on ``DMC-*`` ids); else ``None`` (RL Zoo's own file)
+    """
+    path = HYPERPARAMS_DIR / f"{algo}.yml"
+    if algo == "dacerf" or (path.is_file() and env_id in yaml.safe_load(path.read_text())):
+        return str(path)
+    return None
+
+
+def _patch_experiment_manager(cls: type) -> None:
+    if getattr(cls, "_sb3_dacerf_patched", False):
+        return
+    init = cls.__init__
+    init_signature = inspect.signature(init)
+    optimize = cls.hyperparameters_optimization
+
+    @functools.wraps(init)
+    def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
+        init(self, *args, **kwargs)
+        if init_signature.bind(self, *args, **kwargs).arguments.get("config") is None:
+            self.config = default_config(self.algo, self.env_name.gym_id) or self.config
+
+    @functools.wraps(optimize)
+    def hyperparameters_optimization(self: Any) -> None:
+        if self.algo == "dacerf":
+            from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
+
+            # RL Zoo replaces the YAML's policy_kwargs with the sampled ones: merge instead, to keep the optimizer
+            HYPERPARAMS_SAMPLER["dacerf"] = functools.partial(
+                sample_dacerf_params, policy_kwargs=self._hyperparams.get("policy_kwargs")
+            )
+        optimize(self)
+
+    cls.__init__ = __init__
+    cls.hyperparameters_optimization = hyperparameters_optimization
+    cls._sb3_dacerf_patched = True
+
+
+def register(module: ModuleType) -> None:
+    """
+    Add DACERF to one RL Zoo module (idempotent): ``rl_zoo3.utils`` (``ALGOS``), ``rl_zoo3.hyperparams_opt``
+    (Optuna sampler and converter) or ``rl_zoo3.exp_manager`` (default YAML file); other modules are left alone.
+
+    :param module: the RL Zoo module, already executed
+    """
+    if module.__name__ == "rl_zoo3.utils":
+        module.ALGOS["dacerf"] = DACERF
+    elif module.__name__ == "rl_zoo3.hyperparams_opt":
+        module.HYPERPARAMS_SAMPLER.setdefault("dacerf", sample_dacerf_params)
+        module.HYPERPARAMS_CONVERTER["dacerf"] = convert_dacerf_params
+    elif module.__name__ == "rl_zoo3.exp_manager":
+        _patch_experiment_manager(module.ExperimentManager)
+
+
+def main() -> None:
+    """``python -m sb3_dacerf.zoo <script> [args]``: run ``rl_zoo3.<script>`` (train, enjoy, record_video, ...) with DACERF."""
+    import rl_zoo3.exp_manager
+    import rl_zoo3.hyperparams_opt
+    import rl_zoo3.utils
+
+    for module in (rl_zoo3.utils, rl_zoo3.hyperparams_opt, rl_zoo3.exp_manager):
+        register(module)
+    if len(sys.argv) < 2:
+        raise SystemExit("usage: python -m sb3_dacerf.zoo <train|enjoy|record_video|...> [RL Zoo arguments]")
+    script = f"rl_zoo3.{sys.argv[1]}"
+    sys.argv = [script, *sys.argv[2:]]
+    runpy.run_module(script, run_name="__main__", alter_sys=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,143 @@
+import math
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.envs import FakeImageEnv, SimpleMultiObsEnv
+from stable_baselines3.common.logger import configure
+
+from sb3_dacerf import DACER
+from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
+
+# Small and fast: the behaviour under test does not depend on the network size or the number of steps
+FAST = dict(learning_starts=50, batch_size=32, buffer_size=2_000, n_diffusion_steps=5, policy_kwargs=dict(net_arch=[32, 32]))
+
+
+def test_learns_on_box_observations_and_logs_the_paper_quantities(tmp_path):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, alpha_update_interval=100, entropy_samples=10, **FAST)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(200, log_interval=1)
+    header = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
+    for key in ("critic_loss", "actor_loss", "alpha", "entropy", "n_updates"):
+        assert f"train/{key}" in header
+    assert model._n_updates == 150
+    assert math.isfinite(model.entropy)
+
+
+def test_official_defaults():
+    model = DACER("MlpPolicy", "Pendulum-v1")
+    assert (model.tau, model.policy_delay, model.gamma) == (0.005, 2, 0.99)
+    assert (model.alpha_learning_rate, model.alpha_update_interval, model.entropy_samples) == (3e-2, 10_000, 200)
+    assert model.target_entropy == pytest.approx(-0.9)
+    assert model.actor.log_alpha.item() == pytest.approx(1.2)
+    assert (model.actor.n_diffusion_steps, model.actor.beta_schedule, model.actor.exploration_noise_scale) == (20, "cosine", 0.15)
+    assert [m.out_features for m in model.actor.noise_net if isinstance(m, th.nn.Linear)] == [256, 256, 256, 1]
+    assert any(isinstance(m, th.nn.Mish) for m in model.actor.noise_net)
+    assert model.policy.critic.n_critics == 2
+
+
+def test_one_network_call_per_diffusion_step():
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **FAST)
+    calls = []
+    model.actor.noise_net.register_forward_hook(lambda *_: calls.append(1))
+    model.predict(model.observation_space.sample())
+    assert len(calls) == 5
+
+
+def test_actor_and_targets_update_every_policy_delay_updates():
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, policy_delay=2, **FAST)
+    model.learn(60)  # 10 updates: the last one (10) updated the actor
+    actor_before = [p.clone() for p in model.actor.parameters()]
+    target_before = [p.clone() for p in model.critic_target.parameters()]
+    model.train(gradient_steps=1, batch_size=32)  # update 11: critic only
+    assert all(th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters()))
+    assert all(th.equal(a, b) for a, b in zip(target_before, model.critic_target.parameters()))
+    model.train(gradient_steps=1, batch_size=32)  # update 12: actor, through all the denoising steps, and targets
+    assert all(not th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters()))
+    assert not all(th.equal(a, b) for a, b in zip(target_before, model.critic_target.parameters()))
+
+
+@pytest.mark.parametrize("target_entropy, direction", [(-100.0, -1), (100.0, 1)])
+def test_alpha_moves_towards_the_target_entropy_once_per_interval(target_entropy, direction):
+    regulator = dict(target_entropy=target_entropy, alpha_update_interval=4, entropy_samples=8)
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **regulator, **FAST)
+    model.learn(59)  # updates 1..9: the entropy regulator runs at updates 1, 5 and 9
+    # Adam's steps have size lr while the sign of the gradient H - H_target does not change
+    assert model.actor.log_alpha.item() == pytest.approx(1.2 + direction * 3 * 3e-2, abs=1e-4)
+    assert model.alpha_optimizer.state_dict()["state"][0]["step"] == 3
+
+
+def test_gaussian_mixture_entropy_matches_closed_forms():
+    th.manual_seed(0)
+    gaussian = 0.3 * th.randn(16, 400, 2)
+    expected = 0.5 * 2 * (1 + math.log(2 * math.pi * 0.09))
+    assert gaussian_mixture_entropy(gaussian, n_components=1).mean().item() == pytest.approx(expected, abs=0.05)
+    # Two well separated modes: log 2 plus the entropy of one mode
+    modes = 0.6 * (2 * th.randint(0, 2, (16, 400, 1)).float() - 1) + 0.05 * th.randn(16, 400, 1)
+    expected = math.log(2) + 0.5 * (1 + math.log(2 * math.pi * 0.05**2))
+    assert gaussian_mixture_entropy(modes, n_components=2).mean().item() == pytest.approx(expected, abs=0.1)
+    # Clipped actions (all samples on a bound) keep a finite estimate
+    assert th.isfinite(gaussian_mixture_entropy(th.ones(4, 50, 3))).all()
+
+
+def test_save_load_gives_identical_deterministic_predictions(tmp_path):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, alpha_update_interval=20, entropy_samples=8, **FAST)
+    model.learn(100)
+    observations = np.stack([model.observation_space.sample() for _ in range(16)])
+    actions, _ = model.predict(observations, deterministic=True)
+    np.testing.assert_array_equal(model.predict(observations, deterministic=True)[0], actions)
+    assert not np.array_equal(model.predict(observations)[0], actions)
+
+    model.save(tmp_path / "dacer")
+    loaded = DACER.load(tmp_path / "dacer")
+    np.testing.assert_array_equal(loaded.predict(observations, deterministic=True)[0], actions)
+    assert loaded.actor.n_diffusion_steps == 5 and loaded.policy_delay == 2
+    assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item() != 1.2
+    assert loaded.alpha_optimizer.state_dict()["state"][0]["step"] == model.alpha_optimizer.state_dict()["state"][0]["step"]
+    assert loaded.alpha_optimizer.param_groups[0]["params"][0] is loaded.actor.log_alpha
+    assert loaded.entropy == model.entropy
+
+
+def test_predict_shapes_and_bounds():
+    env = make_vec_env("MountainCarContinuous-v0", n_envs=2, seed=0)
+    model = DACER("MlpPolicy", env, seed=0, **FAST)
+    observation = env.observation_space.sample()
+    assert model.predict(observation)[0].shape == (1,)
+    actions, _ = model.predict(np.stack([observation] * 7))
+    assert actions.shape == (7, 1) and np.all(np.abs(actions) <= 1)
+    assert model.predict(env.reset())[0].shape == (2, 1)
+
+
+def test_image_and_dict_observations():
+    env = FakeImageEnv(action_dim=2, screen_height=40, screen_width=40, n_channels=1, discrete=False)
+    model = DACER("CnnPolicy", env, seed=0, learning_starts=20, batch_size=8, buffer_size=200, n_diffusion_steps=3)
+    model.learn(30)
+    action, _ = model.predict(env.observation_space.sample(), deterministic=True)
+    assert action.shape == env.action_space.shape and env.action_space.contains(action)
+
+    env = SimpleMultiObsEnv(random_start=False, discrete_actions=False)
+    model = DACER("MultiInputPolicy", env, seed=0, **FAST)
+    model.learn(60)
+    assert model.predict(env.observation_space.sample(), deterministic=True)[0].shape == env.action_space.shape
+
+
+def test_linear_beta_schedule():
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **{**FAST, "policy_kwargs": dict(net_arch=[16], beta_schedule="linear")})
+    model.learn(60)
+    with pytest.raises(ValueError, match="Unknown beta_schedule 'quadratic'"):
+        DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(beta_schedule="quadratic"))
+
+
+def test_discrete_actions_are_refused_with_advice():
+    with pytest.raises(TypeError, match="DACER needs a continuous action space"):
+        DACER("MlpPolicy", "CartPole-v1")
+
+
+@pytest.mark.parametrize(
+    "name, value",
+    [("n_diffusion_steps", 0), ("entropy_samples", 2), ("alpha_update_interval", 0), ("alpha_learning_rate", 0.0), ("tau", 0.0)],
+)
+def test_invalid_hyperparameters(name, value):
+    with pytest.raises(ValueError, match=f"Invalid {name}="):
+        DACER("MlpPolicy", "Pendulum-v1", **{name: value})

@@ -1,0 +1,185 @@
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import SAC
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.envs import SimpleMultiObsEnv
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_dacerf import DACERF
+from sb3_dacerf.export import export_policy, main
+
+ort = pytest.importorskip("onnxruntime")
+
+# Untrained tiny models: equivalence does not depend on training or size
+TINY = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32]), seed=0)
+
+
+class DiscreteObsEnv(gym.Env):
+    """Box actions from Discrete, MultiDiscrete, MultiBinary and Box observations: every kind SB3 preprocesses."""
+
+    observation_space = spaces.Dict(
+        {
+            "discrete": spaces.Discrete(4),
+            "multi_discrete": spaces.MultiDiscrete([2, 3]),
+            "multi_binary": spaces.MultiBinary(3),
+            "box": spaces.Box(-1.0, 1.0, (2,), dtype=np.float32),
+        }
+    )
+    action_space = spaces.Box(np.array([-2.0, 0.0], dtype=np.float32), np.array([2.0, 5.0], dtype=np.float32))
+
+    def reset(self, *, seed=None, options=None):
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+def make_model(policy: str, n_sampling_steps: int = 1) -> DACERF:
+    if policy == "MlpPolicy":
+        return DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=n_sampling_steps, **TINY)
+    env = SimpleMultiObsEnv(discrete_actions=False) if policy == "MultiInputPolicy" else DiscreteObsEnv()
+    return DACERF("MultiInputPolicy", env, n_sampling_steps=n_sampling_steps, **TINY)
+
+
+def sample_observations(model: DACERF, n: int):
+    """``n`` observations of the model's space, batched (numpy) as the exported graph and ``predict`` take them."""
+    samples = [model.observation_space.sample() for _ in range(n)]
+    if isinstance(model.observation_space, spaces.Dict):
+        return {key: np.stack([np.asarray(sample[key]) for sample in samples]) for key in samples[0]}
+    return np.stack(samples)
+
+
+def run_exported(path, format: str, obs, a0: np.ndarray | None = None) -> np.ndarray:
+    """Run an exported policy as a deployment would: onnxruntime, or the TorchScript file without this package."""
+    if format == "onnx":
+        feed = dict(obs) if isinstance(obs, dict) else {"obs": obs}
+        if a0 is not None:
+            feed["a0"] = a0
+        return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, feed)[0]
+    policy = th.jit.load(str(path))
+    obs_tensor = {key: th.as_tensor(value) for key, value in obs.items()} if isinstance(obs, dict) else th.as_tensor(obs)
+    with th.no_grad():
+        return (policy(obs_tensor) if a0 is None else policy(obs_tensor, th.as_tensor(a0))).numpy()
+
+
+def sample_with_noise(model: DACERF, obs, a0: np.ndarray) -> np.ndarray:
+    """The stochastic policy with a given a0: ``actor.sample(features, a0)`` rescaled to the action space."""
+    obs_tensor = model.policy.obs_to_tensor(obs)[0]
+    with th.no_grad():
+        features = model.actor.extract_features(obs_tensor, model.actor.features_extractor)
+        actions = model.actor.sample(features, th.as_tensor(a0)).numpy()
+    return model.policy.unscale_action(actions)
+
+
+@pytest.mark.parametrize("format", ["onnx", "torchscript"])
+@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy", "DiscreteObs"])
+def test_exported_policy_matches_predict(tmp_path, format, policy):
+    model = make_model(policy)
+    path = export_policy(model, tmp_path / "policy", format=format)
+    obs = sample_observations(model, 200)
+    expected, _ = model.predict(obs, deterministic=True)
+    assert np.abs(run_exported(path, format, obs) - expected).max() <= 1e-5
+    single = {key: value[:1] for key, value in obs.items()} if isinstance(obs, dict) else obs[:1]
+    assert np.abs(run_exported(path, format, single) - expected[:1]).max() <= 1e-5
+
+    # a0 as second input: the stochastic policy, one a0 per observation or one for the whole batch
+    a0 = np.random.default_rng(0).standard_normal((200, model.actor.action_dim)).astype(np.float32)
+    assert np.abs(run_exported(path, format, obs, a0) - sample_with_noise(model, obs, a0)).max() <= 1e-5
+    a0_shared = np.tile(a0[:1], (200, 1))
+    assert np.abs(run_exported(path, format, obs, a0[:1]) - sample_with_noise(model, obs, a0_shared)).max() <= 1e-5
+
+
+@pytest.mark.parametrize("format", ["onnx", "torchscript"])
+def test_number_of_euler_steps_is_fixed_at_export(tmp_path, format):
+    model = make_model("MlpPolicy", n_sampling_steps=3)
+    obs = sample_observations(model, 100)
+    expected_3, _ = model.predict(obs, deterministic=True)
+    assert np.abs(run_exported(export_policy(model, tmp_path / "n3", format), format, obs) - expected_3).max() <= 1e-5
+
+    path = export_policy(model, tmp_path / "n5", format, n_sampling_steps=5)
+    assert model.actor.n_sampling_steps == 3  # exporting does not change the model
+    model.actor.n_sampling_steps = 5
+    expected_5, _ = model.predict(obs, deterministic=True)
+    assert np.abs(expected_5 - expected_3).max() > 1e-4  # the step count matters for this model
+    assert np.abs(run_exported(path, format, obs) - expected_5).max() <= 1e-5
+
+
+@pytest.mark.parametrize("format", ["onnx", "torchscript"])
+@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
+def test_vec_normalize_statistics_are_baked_in(tmp_path, format, policy):
+    if policy == "MlpPolicy":
+        vec_env = VecNormalize(make_vec_env("Pendulum-v1"), clip_obs=2.0)
+    else:
+        vec_env = VecNormalize(make_vec_env(lambda: SimpleMultiObsEnv(discrete_actions=False)), norm_obs_keys=["vec"])
+    model = DACERF(policy, vec_env, **TINY)
+    # Statistics far from (0, 1), so that forgetting or misapplying them shows
+    rng = np.random.default_rng(0)
+    obs_rms = vec_env.obs_rms if policy == "MlpPolicy" else vec_env.obs_rms["vec"]
+    obs_rms.mean = rng.normal(size=obs_rms.mean.shape)
+    obs_rms.var = rng.uniform(0.01, 4.0, size=obs_rms.var.shape)
+    vec_env.save(str(tmp_path / "vecnormalize.pkl"))
+    loaded = VecNormalize.load(str(tmp_path / "vecnormalize.pkl"), vec_env)
+
+    path = export_policy(model, tmp_path / "policy", format, vec_normalize=loaded)
+    obs = sample_observations(model, 200)
+    expected, _ = model.predict(vec_env.normalize_obs(obs), deterministic=True)
+    assert np.abs(run_exported(path, format, obs) - expected).max() <= 1e-5
+
+
+def test_command_line(tmp_path, monkeypatch, capsys):
+    model = make_model("MlpPolicy")
+    model.save(tmp_path / "model.zip")
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sb3_dacerf.export",
+            str(tmp_path / "model.zip"),
+            "--format",
+            "onnx",
+            "--out",
+            str(tmp_path / "policy.onnx"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    obs = sample_observations(model, 100)
+    assert np.abs(run_exported(tmp_path / "policy.onnx", "onnx", obs) - model.predict(obs, deterministic=True)[0]).max() <= 1e-5
+
+    # The failures in-process (a subprocess start costs seconds): a usage error, exit status 2, and a message
+    SAC("MlpPolicy", "Pendulum-v1", buffer_size=1, policy_kwargs=dict(net_arch=[8])).save(tmp_path / "sac.zip")
+    for arguments, message in [
+        ([str(tmp_path / "missing.zip")], "no model file at"),
+        ([str(tmp_path / "sac.zip")], "could not load"),
+        ([str(tmp_path / "model.zip"), "--vec-normalize", str(tmp_path / "missing.pkl")], "no VecNormalize statistics file"),
+        ([str(tmp_path / "model.zip"), "--out", str(tmp_path / "missing" / "policy.onnx")], "does not exist"),
+    ]:
+        monkeypatch.setattr(sys, "argv", ["export", *arguments])
+        with pytest.raises(SystemExit) as exit_info:
+            main()
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_clear_errors(tmp_path):
+    model = make_model("MlpPolicy")
+    with pytest.raises(TypeError, match="exports DACERF models"):
+        export_policy(SAC("MlpPolicy", "Pendulum-v1", buffer_size=1, policy_kwargs=dict(net_arch=[8])), tmp_path / "p.onnx")
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        export_policy(model, tmp_path / "missing" / "p.onnx")
+    with pytest.raises(ValueError, match="Unknown export format"):
+        export_policy(model, tmp_path / "p.onnx", format="tflite")
+    with pytest.raises(ValueError, match="n_sampling_steps"):
+        export_policy(model, tmp_path / "p.onnx", n_sampling_steps=0)
+    with pytest.raises(TypeError, match="vec_normalize must be a VecNormalize"):
+        export_policy(model, tmp_path / "p.onnx", vec_normalize=dict(mean=0.0))
+    # A custom policy may declare a space that SB3's preprocessing does not handle
+    model.observation_space = spaces.Tuple([spaces.Box(-1.0, 1.0, (3,))])
+    with pytest.raises(TypeError, match="Cannot export a policy for the observation space"):
+        export_policy(model, tmp_path / "p.onnx")

@@ -1,0 +1,226 @@
+"""
+RL Zoo integration. The commands run as subprocesses on a tiny budget, literally (``python -m rl_zoo3.train ...``)
+when ``pip install .`` installed the start-up hook, else through ``python -m sb3_dacerf.zoo train ...``.
+"""
+
+import inspect
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import pytest
+import yaml
+
+optuna = pytest.importorskip("optuna")
+pytest.importorskip("rl_zoo3")
+
+import rl_zoo3.exp_manager  # noqa: E402
+import rl_zoo3.hyperparams_opt  # noqa: E402
+import rl_zoo3.utils  # noqa: E402
+
+from sb3_dacerf import DACERF  # noqa: E402
+from sb3_dacerf.envs.dmc import DMC_ENV_IDS  # noqa: E402
+from sb3_dacerf.zoo import (  # noqa: E402
+    HYPERPARAMS_DIR,
+    convert_dacerf_params,
+    default_config,
+    register,
+    sample_dacerf_params,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+_HOOK = sys.modules.get("sb3_dacerf_zoo_hook")
+# True when the sb3_dacerf_zoo.pth of `pip install .` ran at this interpreter's start
+HOOK_INSTALLED = _HOOK is not None and _HOOK.ZooFinder in sys.meta_path
+
+DRIVING_IDS = ["DACERF-Multilane-v0", "DACERF-Intersection-v0"]
+MUJOCO_IDS = [
+    "Ant-v5",
+    "HalfCheetah-v5",
+    "Hopper-v5",
+    "Humanoid-v5",
+    "HumanoidStandup-v5",
+    "InvertedDoublePendulum-v5",
+    "InvertedPendulum-v5",
+    "Pusher-v5",
+    "Reacher-v5",
+    "Swimmer-v5",
+    "Walker2d-v5",
+]
+# Keys RL Zoo consumes itself before building the model
+ZOO_KEYS = {"n_timesteps", "policy", "noise_type", "noise_std", "n_envs", "normalize", "env_wrapper", "env_kwargs", "callback"}
+# A DACERF small enough for a few hundred steps in a test
+TINY_DACERF = [
+    "learning_starts:50",
+    "batch_size:32",
+    "langevin_steps:2",
+    "policy_kwargs:dict(net_arch=[32, 32], optimizer_class='RAD')",
+]
+
+
+def zoo_command(script: str, *args: str) -> tuple[list[str], dict[str, str]]:
+    """Command line and environment that run the RL Zoo script ``rl_zoo3.<script>`` with DACERF registered."""
+    if HOOK_INSTALLED:
+        return [sys.executable, "-m", f"rl_zoo3.{script}", *args], dict(os.environ)
+    python_path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    return [sys.executable, "-m", "sb3_dacerf.zoo", script, *args], {**os.environ, "PYTHONPATH": python_path}
+
+
+def zoo(script: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run an RL Zoo script in ``cwd``, check that it succeeded and return it."""
+    command, env = zoo_command(script, *args)
+    result = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, f"{' '.join(command)}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    return result
+
+
+def test_start_up_hook_is_installed():
+    if not HOOK_INSTALLED:
+        message = "the RL Zoo start-up hook is not installed (`pip install .`): Zoo tests use `python -m sb3_dacerf.zoo`"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    # At start-up the hook imports nothing heavy
+    code = "import sys; print([m for m in ('torch', 'numpy', 'sb3_dacerf', 'rl_zoo3') if m in sys.modules])"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"
+
+
+def test_register_is_idempotent():
+    for module in (rl_zoo3.utils, rl_zoo3.hyperparams_opt, rl_zoo3.exp_manager):
+        register(module)
+        register(module)
+    assert rl_zoo3.utils.ALGOS["dacerf"] is DACERF
+    assert rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER["dacerf"] is convert_dacerf_params
+    assert "dacerf" in rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER
+    assert rl_zoo3.exp_manager.ExperimentManager._sb3_dacerf_patched
+
+
+def test_default_config():
+    assert default_config("dacerf", "Pendulum-v1") == str(HYPERPARAMS_DIR / "dacerf.yml")
+    assert default_config("sac", "DMC-dog-run-v0") == str(HYPERPARAMS_DIR / "sac.yml")
+    assert default_config("sac", "Pendulum-v1") is None
+    assert default_config("ppo", "DMC-dog-run-v0") is None
+
+
+def test_yaml_entries():
+    dacerf = yaml.safe_load((HYPERPARAMS_DIR / "dacerf.yml").read_text())
+    sac = yaml.safe_load((HYPERPARAMS_DIR / "sac.yml").read_text())
+    assert set(["Pendulum-v1", "MountainCarContinuous-v0", *MUJOCO_IDS, *DMC_ENV_IDS, *DRIVING_IDS]) <= set(dacerf)
+    assert set([*DMC_ENV_IDS, *DRIVING_IDS]) <= set(sac)
+    for env_id in ["Pendulum-v1", "MountainCarContinuous-v0", *MUJOCO_IDS]:
+        gym.spec(env_id)
+    dacerf_args = set(inspect.signature(DACERF).parameters)
+    for env_id in ["Pendulum-v1", *MUJOCO_IDS, *DMC_ENV_IDS, *DRIVING_IDS]:
+        entry = dacerf[env_id]
+        assert set(entry) - ZOO_KEYS <= dacerf_args, env_id
+        paper = {
+            "learning_rate": 1e-4,
+            "batch_size": 512,
+            "gamma": 0.99,
+            "tau": 0.001,
+            "policy_delay": 3,
+            "langevin_steps": 20,
+            "langevin_step_size": 0.03,
+            "langevin_temperature": 0.01,
+            "n_sampling_steps": 1,
+        }
+        assert {key: entry[key] for key in paper} == paper, env_id
+        assert eval(entry["policy_kwargs"])["optimizer_class"] == "RAD"
+
+
+def test_sampler_builds_dacerf():
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(3):
+        trial = study.ask()
+        hyperparams = sample_dacerf_params(trial, 1, 1, {}, policy_kwargs={"optimizer_class": "RAD"})
+        assert hyperparams["policy_kwargs"]["optimizer_class"] == "RAD"
+        # --trial-id reloads a study's parameters through the converter
+        assert convert_dacerf_params(trial.params, {"optimizer_class": "RAD"}) == hyperparams
+        DACERF("MlpPolicy", "Pendulum-v1", **hyperparams)
+        study.tell(trial, 0.0)
+
+
+def test_train_enjoy_record_video_continue(tmp_path):
+    # --eval-freq, --save-freq, -P, tensorboard and callbacks go through RL Zoo's ExperimentManager
+    train = zoo(
+        "train",
+        *["--algo", "dacerf", "--env", "Pendulum-v1", "-n", "300", "--seed", "0", "--num-threads", "1"],
+        *["--eval-freq", "150", "--eval-episodes", "1", "--save-freq", "150", "-P", "-tb", "tb", "-f", "logs"],
+        *["-params", *TINY_DACERF, "callback:'rl_zoo3.callbacks.RawStatisticsCallback'"],
+        cwd=tmp_path,
+    )
+    assert "dacerf.yml" in train.stdout and "rl_zoo3/hyperparams" not in train.stdout
+    run = tmp_path / "logs" / "dacerf" / "Pendulum-v1_1"
+    for name in ["Pendulum-v1.zip", "best_model.zip", "rl_model_150_steps.zip", "evaluations.npz"]:
+        assert (run / name).is_file(), name
+    config = yaml.load((run / "Pendulum-v1" / "config.yml").read_text(), Loader=yaml.UnsafeLoader)
+    assert dict(config)["langevin_step_size"] == 0.03
+    assert list((tmp_path / "tb" / "Pendulum-v1").glob("*/events.out.tfevents.*"))
+
+    run_args = ["--algo", "dacerf", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
+    enjoy = zoo("enjoy", *run_args, "-n", "50", "--no-render", cwd=tmp_path)
+    assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
+
+    pytest.importorskip("moviepy")
+    zoo("record_video", *run_args, "-n", "20", "-o", "videos", cwd=tmp_path)
+    assert list((tmp_path / "videos").glob("*.mp4"))
+
+    resumed = zoo(
+        "train",
+        *["--algo", "dacerf", "--env", "Pendulum-v1", "-n", "100", "--num-threads", "1", "--eval-freq", "-1", "-f", "logs"],
+        *["-i", str(run / "Pendulum-v1.zip")],
+        cwd=tmp_path,
+    )
+    assert "Loading pretrained agent" in resumed.stdout
+    assert (tmp_path / "logs" / "dacerf" / "Pendulum-v1_2" / "Pendulum-v1.zip").is_file()
+
+
+def test_sac_on_dmc_reads_package_yaml(tmp_path):
+    train = zoo(
+        "train",
+        *["--algo", "sac", "--env", "DMC-cartpole-swingup-v0", "-n", "100", "--num-threads", "1", "--eval-freq", "-1"],
+        *["-f", "logs", "-params", "learning_starts:50", "batch_size:32"],
+        cwd=tmp_path,
+    )
+    assert "sac.yml" in train.stdout and "rl_zoo3/hyperparams" not in train.stdout
+    assert (tmp_path / "logs" / "sac" / "DMC-cartpole-swingup-v0_1" / "DMC-cartpole-swingup-v0.zip").is_file()
+
+
+def test_optimize_two_workers_share_one_study(tmp_path):
+    storage = tmp_path / "study.log"
+    command, env = zoo_command(
+        "train",
+        *["--algo", "dacerf", "--env", "Pendulum-v1", "-n", "60", "--num-threads", "1", "--optimize"],
+        *["--storage", str(storage), "--study-name", "dacerf-test", "--n-trials", "2", "--n-evaluations", "1"],
+        *["--eval-episodes", "1", "--sampler", "random", "--pruner", "none", "--no-optim-plots", "-f", "logs", "-uuid"],
+        *["-params", "learning_starts:50", "policy_kwargs:dict(optimizer_class='RAD')"],
+    )
+    workers = [
+        subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        for _ in range(2)
+    ]
+    for worker in workers:
+        output, _ = worker.communicate(timeout=300)
+        assert worker.returncode == 0, output[-3000:]
+
+    study = optuna.load_study(
+        study_name="dacerf-test",
+        storage=optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(storage))),
+    )
+    trials = study.get_trials(states=[optuna.trial.TrialState.COMPLETE])
+    assert len(trials) == 4
+    assert set(trials[0].params) == {
+        "learning_rate",
+        "batch_size_pow",
+        "tau",
+        "policy_delay",
+        "langevin_steps",
+        "langevin_step_size",
+        "langevin_temperature",
+        "n_sampling_steps",
+        "net_arch",
+    }
