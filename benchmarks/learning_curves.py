@@ -165,7 +165,7 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
             + f"{final.action_spread.mean():.3f} | {final.wall_seconds.mean() / 60:.1f} |"
         )
     axes[0][0].legend()
-    figure.suptitle(f"{env_id}: deterministic evaluation, mean and 95% bootstrap CI over seeds")
+    figure.suptitle(f"{env_id}: deterministic evaluation\nmean and 95% bootstrap CI over seeds", fontsize=10)
     figure.tight_layout()
     stem = env_id.replace("/", "_")
     figure.savefig(out / f"{stem}.png", dpi=110)
