@@ -24,41 +24,22 @@ from __future__ import annotations
 
 import argparse
 import copy
-import platform
 import random
-import statistics
-import subprocess
 import tempfile
-import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 import onnxruntime as ort
 import torch as th
-from gymnasium import spaces
+from inference_latency import SpacesOnly, interleaved_medians, machine_name
 from stable_baselines3 import SAC
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
 from sb3_dacerf import DACERF
 from sb3_dacerf.export import export_policy
-
-
-class SpacesEnv(gym.Env):
-    """An environment that only has spaces: the models are built, never trained."""
-
-    def __init__(self, obs_dim: int, action_dim: int):
-        self.observation_space = spaces.Box(-10.0, 10.0, (obs_dim,), dtype=np.float32)
-        self.action_space = spaces.Box(-1.0, 1.0, (action_dim,), dtype=np.float32)
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
-        return self.observation_space.sample(), {}
-
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        return self.observation_space.sample(), 0.0, False, False, {}
 
 
 class SACDeployment(nn.Module):
@@ -81,18 +62,6 @@ class SACDeployment(nn.Module):
         return th.addcmul(self.action_center, self.action_half_range, th.tanh(self.actor.mu(self.actor.latent_pi(features))))
 
 
-def machine_name() -> str:
-    """CPU model and core count (lscpu, nproc), and the GPU when one is visible."""
-    try:
-        lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        cpu = next(line.split(":", 1)[1].strip() for line in lscpu.splitlines() if line.startswith("Model name"))
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        cpu = platform.processor() or platform.machine()
-    cores = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip()
-    gpu = f", {th.cuda.get_device_name()}" if th.cuda.is_available() else ""
-    return f"{cpu}, {cores} cores (nproc){gpu}"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="2000 calls per form (under 30 s on 2 cores)")
@@ -112,7 +81,7 @@ def main() -> None:
     th.manual_seed(args.seed)
     device = th.device(args.device)
 
-    env = SpacesEnv(args.obs_dim, args.action_dim)
+    env = SpacesOnly(args.obs_dim, args.action_dim)
     policy_kwargs = dict(net_arch=args.net_arch)
     models = {
         "DACERF": DACERF("MlpPolicy", env, policy_kwargs=dict(policy_kwargs), buffer_size=1, seed=args.seed, device=device),
@@ -162,27 +131,18 @@ def main() -> None:
                 session = ort.InferenceSession(str(onnx_path), session_options, providers=providers)
                 timed[(name, "onnxruntime")] = lambda session=session: session.run(None, {"obs": obs})
 
-        sync = th.cuda.synchronize if args.device == "cuda" else lambda: None
-        times: dict[tuple[str, str], list[float]] = {key: [] for key in timed}
-        keys = list(timed)
-        rng = random.Random(args.seed)
+        random.seed(args.seed)
         with th.no_grad():
-            for round_ in range(n_calls + 200):
-                rng.shuffle(keys)
-                for key in keys:
-                    start = time.perf_counter()
-                    timed[key]()
-                    sync()
-                    elapsed = time.perf_counter() - start
-                    if round_ >= 200:  # warm-up rounds (allocator, TorchScript profiling executor) are not counted
-                        times[key].append(elapsed)
-    median = {key: 1e6 * statistics.median(values) for key, values in times.items()}
+            # Warm-up rounds (allocator, TorchScript profiling executor), not counted
+            interleaved_medians(timed, 200, synchronize=args.device == "cuda")
+            seconds = interleaved_medians(timed, n_calls, synchronize=args.device == "cuda")
+    median = {key: 1e6 * value for key, value in seconds.items()}
 
     forms = ["model.predict", "torch actor", "TorchScript", "onnxruntime"]
     lines = [
         f"Single-observation latency, median of {n_calls} interleaved calls, {args.device.upper()}, "
         f"{args.threads} thread(s); actor {'x'.join(map(str, args.net_arch))}, {args.obs_dim} observations, "
-        f"{args.action_dim} actions; {machine_name()}; torch {th.__version__}, onnxruntime {ort.__version__}.",
+        f"{args.action_dim} actions; {machine_name()}, onnxruntime {ort.__version__}.",
         "",
         "| form | DACERF (µs) | SAC (µs) | DACERF / SAC | DACERF speed-up over its `model.predict` |",
         "|---|---:|---:|---:|---:|",
