@@ -11,13 +11,17 @@ and ratios to SAC. DACER's entropy estimate (a Gaussian mixture fitted to 200 ac
 every 10,000 updates) is timed apart and given amortised. Spaces as in ``inference_latency.py``; the replay buffer
 holds random transitions.
 
+``--compile`` adds "DACERF compiled": DACERF with ``compile_langevin=True`` (the Langevin loop through
+``torch.compile``; the compilation, ~30 s per size and batch on a CPU, happens in the warm-up and is not timed).
+
 Usage::
 
-    python benchmarks/iteration_time.py [--quick] [--device cpu|cuda] [--threads 1] [--rounds 40]
+    python benchmarks/iteration_time.py [--quick] [--compile] [--device cpu|cuda] [--threads 1] [--rounds 40]
 """
 
 import argparse
 import time
+from typing import Any
 
 import matplotlib
 
@@ -28,15 +32,15 @@ from inference_latency import ALGORITHMS, SIZES, interleaved_medians, machine_na
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.logger import Logger
 
-from sb3_dacerf import DACER
+from sb3_dacerf import DACER, DACERF
 
 GRADIENT_STEPS = 6  # a multiple of DACERF's policy delay (3) and DACER's (2)
 BUFFER_SIZE = 10_000
 
 
-def ready_to_train(algorithm: type[BaseAlgorithm], obs_dim: int, action_dim: int, device: str) -> BaseAlgorithm:
+def ready_to_train(algorithm: type[BaseAlgorithm], obs_dim: int, action_dim: int, device: str, **kwargs: Any) -> BaseAlgorithm:
     """A model whose replay buffer is full of random transitions, logging nowhere."""
-    model = make_model(algorithm, obs_dim, action_dim, device, buffer_size=BUFFER_SIZE)
+    model = make_model(algorithm, obs_dim, action_dim, device, buffer_size=BUFFER_SIZE, **kwargs)
     buffer = model.replay_buffer
     rng = np.random.default_rng(0)
     buffer.observations[:] = rng.normal(size=buffer.observations.shape)
@@ -48,9 +52,14 @@ def ready_to_train(algorithm: type[BaseAlgorithm], obs_dim: int, action_dim: int
     return model
 
 
-def measure(obs_dim: int, action_dim: int, batch_size: int, device: str, rounds: int) -> dict[str, float]:
+COMPILED = "DACERF compiled"
+
+
+def measure(obs_dim: int, action_dim: int, batch_size: int, device: str, rounds: int, names: list[str]) -> dict[str, float]:
     """Median seconds per gradient step of each algorithm, and DACER's entropy estimate (seconds per call)."""
     models = {name: ready_to_train(algorithm, obs_dim, action_dim, device) for name, algorithm in ALGORITHMS.items()}
+    if COMPILED in names:
+        models[COMPILED] = ready_to_train(DACERF, obs_dim, action_dim, device, compile_langevin=True)
     calls = {
         name: (lambda m=model: m.train(gradient_steps=GRADIENT_STEPS, batch_size=batch_size)) for name, model in models.items()
     }
@@ -71,8 +80,10 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="5 rounds, batch 256 only (about 2 minutes)")
     parser.add_argument("--rounds", type=int, default=40, help="timed rounds per (size, batch)")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 512])
+    parser.add_argument("--compile", action="store_true", help="also time DACERF with compile_langevin=True")
     args = parse_arguments(parser, "iteration_time.png")
     rounds, batch_sizes = (5, [256]) if args.quick else (args.rounds, args.batch_sizes)
+    names = [*ALGORITHMS, *([COMPILED] if args.compile else [])]
 
     header = (
         f"{machine_name()}; device {args.device}; torch.set_num_threads({args.threads}); "
@@ -81,37 +92,40 @@ def main() -> None:
     )
     print(header)
     results = {
-        (size, batch_size): measure(obs_dim, action_dim, batch_size, args.device, rounds)
+        (size, batch_size): measure(obs_dim, action_dim, batch_size, args.device, rounds, names)
         for size, (obs_dim, action_dim) in SIZES.items()
         for batch_size in batch_sizes
     }
 
     print()
-    columns = [f"{name} (ms)" for name in ALGORITHMS] + [f"{name} / SAC" for name in ALGORITHMS]
-    columns += ["DACER / DACERF", "DACER entropy estimate (s; ms/step)"]
+    columns = [f"{name} (ms)" for name in names] + [f"{name} / SAC" for name in names]
+    columns += ["DACER / DACERF", *(["DACER / DACERF compiled"] if args.compile else []), "DACER entropy estimate (s; ms/step)"]
     print("| size | batch | " + " | ".join(columns) + " |")
-    print("|" + "---|" * (4 + 2 * len(ALGORITHMS)))
+    print("|" + "---|" * (len(columns) + 2))
     for (size, batch_size), medians in results.items():
         estimate = medians["DACER entropy estimate"]
         print(
-            f"| {size} | {batch_size} | " + " | ".join(f"{1e3 * medians[name]:.1f}" for name in ALGORITHMS) + " | "
-            + " | ".join(f"{medians[name] / medians['SAC']:.2f}" for name in ALGORITHMS) + " | "
-            + f"{medians['DACER'] / medians['DACERF']:.2f} | {estimate:.2f}; {1e3 * estimate / 10_000:.2f} |"
+            f"| {size} | {batch_size} | " + " | ".join(f"{1e3 * medians[name]:.1f}" for name in names) + " | "
+            + " | ".join(f"{medians[name] / medians['SAC']:.2f}" for name in names) + " | "
+            + f"{medians['DACER'] / medians['DACERF']:.2f} | "
+            + (f"{medians['DACER'] / medians[COMPILED]:.2f} | " if args.compile else "")
+            + f"{estimate:.2f}; {1e3 * estimate / 10_000:.2f} |"
         )  # fmt: skip
     print()
     for (size, batch_size), medians in results.items():
-        to_sac, speedup = medians["DACERF"] / medians["SAC"], medians["DACER"] / medians["DACERF"]
-        print(
-            f"- {size}, batch {batch_size}: DACERF / SAC = {to_sac:.2f} (≤ 2.6 on CPU: {verdict(to_sac <= 2.6)}); "
-            f"DACER / DACERF = {speedup:.2f} (≥ 3.4: {verdict(speedup >= 3.4)})"
-        )
+        for name in [name for name in names if name.startswith("DACERF")]:
+            to_sac, speedup = medians[name] / medians["SAC"], medians["DACER"] / medians[name]
+            print(
+                f"- {size}, batch {batch_size}: {name} / SAC = {to_sac:.2f} (≤ 2.6 on CPU: {verdict(to_sac <= 2.6)}); "
+                f"DACER / {name} = {speedup:.2f} (≥ 3.4: {verdict(speedup >= 3.4)})"
+            )
 
     figure, axes = plt.subplots(1, len(batch_sizes), figsize=(6 * len(batch_sizes), 4), squeeze=False)
-    width = 0.8 / len(ALGORITHMS)
+    width = 0.8 / len(names)
     for axis, batch_size in zip(axes[0], batch_sizes):
-        for i, name in enumerate(ALGORITHMS):
+        for i, name in enumerate(names):
             values = [1e3 * results[(size, batch_size)][name] for size in SIZES]
-            axis.bar(np.arange(len(SIZES)) + (i - (len(ALGORITHMS) - 1) / 2) * width, values, width, label=name)
+            axis.bar(np.arange(len(SIZES)) + (i - (len(names) - 1) / 2) * width, values, width, label=name)
         axis.set_xticks(np.arange(len(SIZES)), list(SIZES))
         axis.set_title(f"batch {batch_size}")
         axis.set_ylabel("median time per gradient step (ms)")

@@ -6,6 +6,10 @@ separate environment. Runs are spread over ``--workers`` processes (one torch th
 ``<out>/<env>.csv`` (one row per evaluation) and ``<out>/<env>.png`` (mean and 95% bootstrap interval over seeds);
 a markdown table of the final evaluations is printed.
 
+Every run also keeps its own evaluations in ``<out>/runs/<env>/<variant>-seed<k>.csv``, rewritten after each
+evaluation: a finished run (last row at ``--timesteps``) is not trained again when the command is repeated, so long
+comparisons can be run in pieces (one variant or seed range at a time) and ``--report-only`` plots what is there.
+
     python benchmarks/learning_curves.py --quick                       # Pendulum, 2 seeds, 3k steps, < 5 min
     python benchmarks/learning_curves.py --env Pendulum-v1 --timesteps 20000 --seeds 3 --variants dacerf sac
     python benchmarks/learning_curves.py --env DACERF-Intersection-v0 --variants dacerf sac --timesteps 50000
@@ -59,9 +63,27 @@ def algorithm_class(name: str) -> type:
     return getattr(sb3_dacerf, name)
 
 
+def run_file(out: Path, env_id: str, variant: str, seed: int) -> Path:
+    """Where one run keeps its evaluations."""
+    return out / "runs" / env_id.replace("/", "_") / f"{variant}-seed{seed}.csv"
+
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    import pandas as pd
+
+    return pd.read_csv(path).to_dict("records") if path.exists() else []
+
+
 def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
-    """Train one variant with one seed; return one row per evaluation."""
+    """Train one variant with one seed; return one row per evaluation (read back if the run already finished)."""
+    path = run_file(Path(job["out"]), job["env"], job["variant"], job["seed"])
+    done_rows = read_rows(path)
+    if done_rows and done_rows[-1]["timesteps"] >= job["timesteps"]:
+        print(f"{path}: already finished, not trained again", flush=True)
+        return done_rows
+
     import gymnasium as gym
+    import pandas as pd
     import torch as th
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.noise import NormalActionNoise
@@ -107,6 +129,9 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
                 wall_seconds=time.perf_counter() - start,
             )
         )
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pd.DataFrame(rows).to_csv(path, index=False)
+        print(json.dumps(rows[-1]), flush=True)
 
     class Evaluate(BaseCallback):
         def _on_step(self) -> bool:
@@ -115,7 +140,6 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
             return True
 
     model.learn(job["timesteps"], callback=Evaluate())
-    print(json.dumps(rows[-1]), flush=True)
     return rows
 
 
@@ -184,13 +208,26 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", default="benchmarks/results")
+    parser.add_argument("--first-seed", type=int, default=0, help="seeds are first-seed .. first-seed + seeds - 1")
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
+    parser.add_argument(
+        "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
+    )
     args = parser.parse_args()
     if args.quick:
         args.seeds, args.timesteps, args.eval_freq, args.eval_episodes = 2, 3_000, 1_000, 3
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.report_only:
+        folder = run_file(out, args.env, "x", 0).parent
+        rows = [row for v in args.variants for path in sorted(folder.glob(f"{v}-seed*.csv")) for row in read_rows(path)]
+        if not rows:
+            raise SystemExit(f"No runs of {args.variants} under {folder}: run without --report-only first")
+        print(f"\n{args.env}: runs found under {folder}\n")
+        print(report(rows, args.env, out))
+        print(f"\nsaved {out / args.env.replace('/', '_')}.csv and .png")
+        return
     jobs = [
         dict(
             env=args.env,
@@ -200,8 +237,9 @@ def main() -> None:
             eval_freq=args.eval_freq,
             eval_episodes=args.eval_episodes,
             device=args.device,
+            out=str(out),
         )
-        for seed in range(args.seeds)
+        for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants
     ]
     with mp.get_context("spawn").Pool(args.workers) as pool:

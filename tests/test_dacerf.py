@@ -236,6 +236,16 @@ def test_invalid_hyperparameters(name, value):
         DACERF("MlpPolicy", "Pendulum-v1", **{name: value})
 
 
+def test_compiled_langevin_loop_trains_and_is_saved(tmp_path):
+    """compile_langevin=True: the loop goes through torch.compile (one graph, ~30 s here) and the flag is saved."""
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, compile_langevin=True, **FAST)
+    model.learn(80)
+    assert model.logger.name_to_value["train/langevin_gain"] > 0
+    assert np.isfinite(model.logger.name_to_value["train/actor_loss"])
+    model.save(tmp_path / "compiled")
+    assert DACERF.load(tmp_path / "compiled").compile_langevin is True
+
+
 class NanRewardPendulum(gym.Wrapper):
     def step(self, action):
         observation, _, terminated, truncated, info = self.env.step(action)

@@ -1,8 +1,12 @@
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.torch_layers import FlattenExtractor
+from torch import nn
 
-from sb3_dacerf.common.langevin import langevin_targets
+from sb3_dacerf.common.langevin import MinQActionGradient, autograd_action_gradient, langevin_targets
 from sb3_dacerf.common.utils import frozen
 
 
@@ -11,13 +15,18 @@ def quadratic_q(mean: th.Tensor):
     return lambda actions: -0.5 * (actions - mean).pow(2).sum(dim=1, keepdim=True)
 
 
+def quadratic_gradient(mean: th.Tensor):
+    """∇_a of :func:`quadratic_q`, by autograd."""
+    return autograd_action_gradient(quadratic_q(mean))
+
+
 def test_quadratic_energy_gives_gaussian_of_mean_mu_and_variance_alpha():
     th.manual_seed(0)
     n_samples, step_size, temperature = 20_000, 0.01, 0.05
     mean = th.tensor([0.3, -0.2])
     start = th.zeros((n_samples, 2))
     samples = langevin_targets(
-        quadratic_q(mean), start, n_steps=1500, step_size=step_size, temperature=temperature, low=-10.0, high=10.0
+        quadratic_gradient(mean), start, n_steps=1500, step_size=step_size, temperature=temperature, low=-10.0, high=10.0
     )
     # Unadjusted Langevin on this energy has stationary variance 2α / (2 - η), 0.5 % above α here
     expected_variance = 2 * temperature / (2 - step_size)
@@ -34,7 +43,7 @@ def test_targets_stay_in_bounds_and_climb_q():
     th.manual_seed(1)
     start = th.rand((512, 3)) * 2 - 1
     q_function = quadratic_q(th.tensor([5.0, -5.0, 0.0]))  # optimum outside the box
-    targets = langevin_targets(q_function, start, n_steps=20, step_size=0.03, temperature=0.01)
+    targets = langevin_targets(autograd_action_gradient(q_function), start, n_steps=20, step_size=0.03, temperature=0.01)
     assert targets.min() >= -1.0 and targets.max() <= 1.0
     assert (q_function(targets) > q_function(start)).float().mean() > 0.95
     assert not targets.requires_grad
@@ -42,7 +51,7 @@ def test_targets_stay_in_bounds_and_climb_q():
 
 def test_zero_steps_returns_the_start_actions():
     start = th.rand((8, 2))
-    assert th.equal(langevin_targets(quadratic_q(th.zeros(2)), start, n_steps=0, step_size=0.03, temperature=0.01), start)
+    assert th.equal(langevin_targets(quadratic_gradient(th.zeros(2)), start, n_steps=0, step_size=0.03, temperature=0.01), start)
 
 
 def test_gradients_reach_actions_only():
@@ -51,7 +60,8 @@ def test_gradients_reach_actions_only():
     observations = th.randn((32, 2))
     start = th.rand((32, 2)) * 2 - 1
     with frozen(critic.parameters()):
-        targets = langevin_targets(lambda a: critic(th.cat([observations, a], dim=1)), start, 20, 0.03, 0.01)
+        q_function = lambda a: critic(th.cat([observations, a], dim=1))  # noqa: E731
+        targets = langevin_targets(autograd_action_gradient(q_function), start, 20, 0.03, 0.01)
     assert all(param.grad is None for param in critic.parameters())
     assert all(param.requires_grad for param in critic.parameters())
     assert not th.equal(targets, start)
@@ -60,6 +70,44 @@ def test_gradients_reach_actions_only():
 @pytest.mark.parametrize("temperature", [0.0, 0.01])
 def test_zero_temperature_is_deterministic_gradient_ascent(temperature):
     start = th.zeros((4, 1))
-    first = langevin_targets(quadratic_q(th.ones(1)), start, 10, 0.1, temperature)
-    second = langevin_targets(quadratic_q(th.ones(1)), start, 10, 0.1, temperature)
+    first = langevin_targets(quadratic_gradient(th.ones(1)), start, 10, 0.1, temperature)
+    second = langevin_targets(quadratic_gradient(th.ones(1)), start, 10, 0.1, temperature)
     assert th.equal(first, second) == (temperature == 0.0)
+
+
+def make_critic(activation_fn: type[nn.Module], observation_dim: int = 5, action_dim: int = 3, n_critics: int = 2):
+    observation_space = gym.spaces.Box(-1, 1, (observation_dim,))
+    action_space = gym.spaces.Box(-1, 1, (action_dim,))
+    return ContinuousCritic(
+        observation_space,
+        action_space,
+        net_arch=[32, 16],
+        features_extractor=FlattenExtractor(observation_space),
+        features_dim=observation_dim,
+        activation_fn=activation_fn,
+        n_critics=n_critics,
+    )
+
+
+@pytest.mark.parametrize("n_critics", [1, 2, 3])
+@pytest.mark.parametrize("activation_fn", [nn.ReLU, nn.LeakyReLU, nn.Tanh, nn.ELU])
+def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics):
+    """The written-out gradient (ReLU, LeakyReLU, Tanh) and the autograd fallback (ELU) equal autograd of min_j Q_j."""
+    th.manual_seed(3)
+    critic = make_critic(activation_fn, n_critics=n_critics)
+    observations, actions = th.randn((64, 5)), th.rand((64, 3)) * 2 - 1
+    gradient = MinQActionGradient(critic, observations)
+    assert gradient.written_out == (activation_fn is not nn.ELU)
+
+    def min_q(a):
+        return th.min(th.cat(critic(observations, a), dim=1), dim=1, keepdim=True).values
+
+    with frozen(critic.parameters()):
+        expected = autograd_action_gradient(min_q)(actions)
+        assert th.allclose(gradient(actions), expected, atol=1e-6)
+        # and the whole loop, with the same noise
+        th.manual_seed(4)
+        targets = langevin_targets(gradient, actions, 20, 0.03, 0.01)
+        th.manual_seed(4)
+        assert th.allclose(targets, langevin_targets(autograd_action_gradient(min_q), actions, 20, 0.03, 0.01), atol=1e-5)
+    assert all(param.grad is None for param in critic.parameters())

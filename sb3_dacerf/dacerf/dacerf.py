@@ -8,7 +8,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from torch.nn import functional as F
 
-from sb3_dacerf.common.langevin import langevin_targets
+from sb3_dacerf.common.langevin import MinQActionGradient, compiled_langevin_targets, langevin_targets
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
 from sb3_dacerf.common.utils import frozen
 from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, MlpPolicy, MultiInputPolicy, VelocityField
@@ -57,6 +57,8 @@ class DACERF(TwinCriticAlgorithm):
     :param langevin_temperature: Temperature ``α`` of the energy-based target ``exp(Q / α)``
     :param n_sampling_steps: Number of Euler steps of the flow sampler (1 in the paper: one network call per action)
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
+    :param compile_langevin: Run the Langevin loop through ``torch.compile`` (same targets; the first update
+        compiles for ~30 s on a CPU, then the loop is faster: see benchmarks/iteration_time.py)
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
@@ -101,6 +103,7 @@ class DACERF(TwinCriticAlgorithm):
         langevin_temperature: float = 0.01,
         n_sampling_steps: int = 1,
         flow_matching_coef: float = 1.0,
+        compile_langevin: bool = False,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -138,6 +141,7 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
         self.flow_matching_coef = flow_matching_coef
+        self.compile_langevin = compile_langevin
         # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
         self.policy_kwargs = {**self.policy_kwargs, "n_sampling_steps": n_sampling_steps}
 
@@ -164,8 +168,9 @@ class DACERF(TwinCriticAlgorithm):
             if self._n_updates % self.policy_delay == 0:
                 with frozen(self._critic_parameters()):
                     # Langevin targets a* from the replay actions (Algorithm 1), gradients w.r.t. actions only
-                    actions_star = langevin_targets(
-                        lambda actions: self._min_q(observations, actions),
+                    langevin = compiled_langevin_targets() if self.compile_langevin else langevin_targets
+                    actions_star = langevin(
+                        MinQActionGradient(self.critic, observations),  # ∇_a min_j Q_j(s, a)
                         actions_buffer,
                         n_steps=self.langevin_steps,
                         step_size=self.langevin_step_size,
