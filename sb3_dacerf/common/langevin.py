@@ -68,11 +68,11 @@ def autograd_action_gradient(q_function: Callable[[th.Tensor], th.Tensor]) -> Ca
     return gradient
 
 
-# Derivative of each supported activation, from its input z
-_ACTIVATION_DERIVATIVES: dict[type[nn.Module], Callable[[nn.Module, th.Tensor], th.Tensor]] = {
-    nn.ReLU: lambda module, z: (z > 0).to(z.dtype),
-    nn.LeakyReLU: lambda module, z: th.where(z > 0, 1.0, module.negative_slope).to(z.dtype),  # type: ignore[arg-type]
-    nn.Tanh: lambda module, z: 1 - th.tanh(z).square(),
+# Backward pass of each supported activation: dQ/dz from dQ/dh, h = activation(z) (the kernels autograd uses)
+_ACTIVATION_BACKWARDS: dict[type[nn.Module], Callable[[nn.Module, th.Tensor, th.Tensor], th.Tensor]] = {
+    nn.ReLU: lambda module, grad, z: th.ops.aten.threshold_backward(grad, z, 0.0),
+    nn.LeakyReLU: lambda module, grad, z: th.ops.aten.leaky_relu_backward(grad, z, module.negative_slope, False),
+    nn.Tanh: lambda module, grad, z: th.ops.aten.tanh_backward(grad, th.tanh(z)),
 }
 
 
@@ -116,7 +116,7 @@ class MinQActionGradient:
             q_values, gradients = [], []
             for state_part, action_weight, linears, activations in self.networks:
                 # Forward pass, keeping the pre-activations
-                pre_activation = state_part + actions @ action_weight.t()
+                pre_activation = th.addmm(state_part, actions, action_weight.t())
                 pre_activations = [pre_activation]
                 for linear, activation in zip(linears, activations):
                     pre_activation = linear(activation(pre_activation))
@@ -126,9 +126,11 @@ class MinQActionGradient:
                 gradient = th.ones_like(pre_activation)
                 backward = zip(reversed(linears), reversed(activations), reversed(pre_activations[:-1]))
                 for linear, activation, pre_activation in backward:
-                    gradient = (gradient @ linear.weight) * _ACTIVATION_DERIVATIVES[type(activation)](activation, pre_activation)
+                    gradient = _ACTIVATION_BACKWARDS[type(activation)](activation, gradient @ linear.weight, pre_activation)
                 gradients.append(gradient @ action_weight)
             # The gradient of the smallest Q, per sample (the first one on ties, as autograd through th.min)
+            if len(gradients) == 2:
+                return th.where(q_values[0] <= q_values[1], gradients[0], gradients[1])
             smallest = th.stack(q_values).argmin(dim=0, keepdim=True)  # (1, batch, 1)
             stacked = th.stack(gradients)  # (n_critics, batch, action_dim)
             return stacked.gather(0, smallest.expand(1, *stacked.shape[1:])).squeeze(0)
@@ -148,6 +150,6 @@ def _linear_layers(network: nn.Module) -> tuple[list[nn.Linear], list[nn.Module]
     linears, activations = list(network[::2]), list(network[1::2])
     if not all(type(layer) is nn.Linear for layer in linears) or linears[-1].out_features != 1:
         return None
-    if not all(type(activation) in _ACTIVATION_DERIVATIVES for activation in activations):
+    if not all(type(activation) in _ACTIVATION_BACKWARDS for activation in activations):
         return None
     return linears, activations
