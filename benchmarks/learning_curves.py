@@ -15,7 +15,8 @@ comparisons can be run in pieces (one variant or seed range at a time) and ``--r
     python benchmarks/learning_curves.py --env DACERF-Intersection-v0 --variants dacerf sac --timesteps 50000
 
 Environment ids registered by ``sb3_dacerf`` (driving, DMC) work too; for environments whose ``info`` carries
-``is_success`` / ``collision`` the arrival and collision rates of the evaluation episodes are reported as well.
+``is_success`` / ``collision`` / ``off_road`` the arrival, collision and off-road rates of the evaluation
+episodes are reported as well.
 """
 
 import argparse
@@ -103,7 +104,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     start = time.perf_counter()
 
     def evaluate() -> None:
-        returns, successes, collisions = [], [], []
+        returns, successes, collisions, off_road = [], [], [], []
         for episode in range(job["eval_episodes"]):
             observation, _ = eval_env.reset(seed=10_000 * job["seed"] + episode)
             done, total, info = False, 0.0, {}
@@ -115,6 +116,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
             returns.append(total)
             successes.append(float(info.get("is_success", np.nan)))
             collisions.append(float(info.get("collision", np.nan)))
+            off_road.append(float(info.get("off_road", np.nan)))
         spread = model.logger.name_to_value.get("train/action_spread", np.nan)
         rows.append(
             dict(
@@ -125,6 +127,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
                 mean_return=float(np.mean(returns)),
                 arrival_rate=float(np.mean(successes)),
                 collision_rate=float(np.mean(collisions)),
+                off_road_rate=float(np.mean(off_road)),
                 action_spread=float(spread),
                 wall_seconds=time.perf_counter() - start,
             )
@@ -160,7 +163,8 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
 
     frame = pd.DataFrame(rows)
     rng = np.random.default_rng(0)
-    metrics = ["mean_return"] + [m for m in ("arrival_rate", "collision_rate") if frame[m].notna().any()]
+    rates = ("arrival_rate", "collision_rate", "off_road_rate")  # off_road_rate: runs from 2026-11-23 on
+    metrics = ["mean_return"] + [m for m in rates if m in frame and frame[m].notna().any()]
     figure, axes = plt.subplots(1, len(metrics), figsize=(5.5 * len(metrics), 3.8), squeeze=False)
     lines = [
         "| variant | seeds | steps | final return (mean [95% CI]) | "
