@@ -211,7 +211,7 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=5)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out", default="benchmarks/results")
+    parser.add_argument("--out", help="results folder (default: benchmarks/results, with --quick benchmarks/results/quick)")
     parser.add_argument("--first-seed", type=int, default=0, help="seeds are first-seed .. first-seed + seeds - 1")
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
     parser.add_argument(
@@ -221,7 +221,7 @@ def main() -> None:
     if args.quick:
         args.seeds, args.timesteps, args.eval_freq, args.eval_episodes = 2, 3_000, 1_000, 3
 
-    out = Path(args.out)
+    out = Path(args.out or ("benchmarks/results/quick" if args.quick else "benchmarks/results"))
     out.mkdir(parents=True, exist_ok=True)
     if args.report_only:
         folder = run_file(out, args.env, "x", 0).parent
