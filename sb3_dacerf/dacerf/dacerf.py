@@ -136,14 +136,16 @@ class DACERF(TwinCriticAlgorithm):
             device=device,
         )
 
+        # DACER-F's own hyper-parameters (Algorithm 2)
         self.policy_delay = policy_delay
         self.langevin_steps = langevin_steps
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
         self.flow_matching_coef = flow_matching_coef
-        self.compile_langevin = compile_langevin
         # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
         self.policy_kwargs = {**self.policy_kwargs, "n_sampling_steps": n_sampling_steps}
+        # torch.compile of the Langevin loop (an option: compiling costs ~30 s at the first update)
+        self.compile_langevin = compile_langevin
 
         if _init_setup_model:
             self._setup_model()
