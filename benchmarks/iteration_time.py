@@ -130,7 +130,8 @@ def main() -> None:
         axis.set_title(f"batch {batch_size}")
         axis.set_ylabel("median time per gradient step (ms)")
         axis.grid(axis="y", alpha=0.3)
-    axes[0][0].legend()
+        axis.set_ylim(top=1.3 * axis.get_ylim()[1])  # room for the legend above the tallest bars
+    axes[0][0].legend(ncol=3, fontsize="small", loc="upper left")
     figure.suptitle(header, fontsize=8)
     figure.tight_layout()
     figure.savefig(args.plot, dpi=120)

@@ -104,16 +104,18 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     start = time.perf_counter()
 
     def evaluate() -> None:
-        returns, successes, collisions, off_road = [], [], [], []
+        returns, lengths, successes, collisions, off_road = [], [], [], [], []
         for episode in range(job["eval_episodes"]):
             observation, _ = eval_env.reset(seed=10_000 * job["seed"] + episode)
-            done, total, info = False, 0.0, {}
+            done, total, length, info = False, 0.0, 0, {}
             while not done:
                 action, _ = model.predict(observation, deterministic=True)
                 observation, reward, terminated, truncated, info = eval_env.step(action)
                 total += float(reward)
+                length += 1
                 done = terminated or truncated
             returns.append(total)
+            lengths.append(length)
             successes.append(float(info.get("is_success", np.nan)))
             collisions.append(float(info.get("collision", np.nan)))
             off_road.append(float(info.get("off_road", np.nan)))
@@ -125,6 +127,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
                 seed=job["seed"],
                 timesteps=model.num_timesteps,
                 mean_return=float(np.mean(returns)),
+                episode_length=float(np.mean(lengths)),
                 arrival_rate=float(np.mean(successes)),
                 collision_rate=float(np.mean(collisions)),
                 off_road_rate=float(np.mean(off_road)),
