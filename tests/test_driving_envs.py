@@ -223,6 +223,17 @@ def test_density_changes_vehicle_count():
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
+def test_ego_starts_near_its_reference_speed(env_id):
+    # A start far from the target speed makes leaving the road (-200) cheaper than catching up at ±0.8 m/s²
+    env = make(env_id)
+    gaps = []
+    for seed in range(20):
+        env.reset(seed=seed)
+        gaps.append(abs(env.unwrapped.vehicle.speed - env.unwrapped.reference_speed))
+    assert max(gaps) < 2.0, gaps
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
 def test_seeded_resets_are_identical(env_id):
     env = make(env_id)
     actions = np.random.default_rng(0).uniform(PAPER_INCREMENT_LOW, PAPER_INCREMENT_HIGH, (10, 2)).astype(np.float32)
