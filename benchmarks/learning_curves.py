@@ -94,8 +94,8 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     th.set_num_threads(1)
     algorithm, kwargs = VARIANTS[job["variant"]]
     kwargs = dict(kwargs)
-    env = gym.make(job["env"])
-    eval_env = gym.make(job["env"])
+    env = gym.make(job["env"], **job["env_kwargs"])
+    eval_env = gym.make(job["env"], **job["env_kwargs"])
     if "action_noise_std" in kwargs:
         dim = env.action_space.shape[0]
         kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
@@ -214,6 +214,12 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=5)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--env-kwargs",
+        type=json.loads,
+        default={},
+        help='keyword arguments of gym.make, as JSON, e.g. \'{"config": {"collision_penalty": 500}}\' (use another --out)',
+    )
     parser.add_argument("--out", help="results folder (default: benchmarks/results, with --quick benchmarks/results/quick)")
     parser.add_argument("--first-seed", type=int, default=0, help="seeds are first-seed .. first-seed + seeds - 1")
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
@@ -245,6 +251,7 @@ def main() -> None:
             eval_episodes=args.eval_episodes,
             device=args.device,
             out=str(out),
+            env_kwargs=args.env_kwargs,
         )
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants
