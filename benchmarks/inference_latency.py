@@ -173,8 +173,14 @@ def parse_arguments(parser: argparse.ArgumentParser, plot: str) -> argparse.Name
     """Add the options both speed benchmarks have (--device, --threads, --plot), parse, and apply --threads."""
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1: steadier on a shared machine)")
-    parser.add_argument("--plot", type=Path, default=Path(__file__).with_name(plot), help="where the PNG goes")
+    parser.add_argument(
+        "--plot", type=Path, help=f"where the PNG goes (default: benchmarks/{plot}, with --quick benchmarks/results/quick/)"
+    )
     args = parser.parse_args()
+    if args.plot is None:  # --quick runs never overwrite the committed figures
+        folder = Path(__file__).parent / "results" / "quick" if args.quick else Path(__file__).parent
+        folder.mkdir(parents=True, exist_ok=True)
+        args.plot = folder / plot
     th.set_num_threads(args.threads)
     random.seed(0)
     return args
