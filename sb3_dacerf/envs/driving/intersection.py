@@ -132,7 +132,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             self.road,
             approach.position(start, rng.normal(0.0, 0.2)),
             heading=approach.heading_at(start) + rng.normal(0.0, 0.02),
-            speed=max(self.reference_speed + rng.normal(0.0, 0.5), 0.0),
+            speed=self._start_speed(),
         )
         step = 0.5
         if self.route == "u_turn":

@@ -84,14 +84,11 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         ego_lane = network.get_lane(("0", "1", ego_lane_id))
         x0 = 20.0 - config["traffic_window"][0]
         self.reference_speed = float(rng.uniform(*config["reference_speed_range"]))
-        # The ego starts near its target speed, as in the intersection: started at the traffic's speed (up to
-        # 10 m/s off the target, ±0.8 m/s² to close the gap), the speed-tracking cost alone averaged ~250 per
-        # episode even for an ideal driver, and leaving the road (-200) was the better return in ~30% of them.
         ego = self.action_type.vehicle_class(
             self.road,
             ego_lane.position(x0, rng.normal(0.0, 0.2)),
             heading=ego_lane.heading_at(x0) + rng.normal(0.0, 0.01),
-            speed=max(self.reference_speed + rng.normal(0.0, 0.5), 0.0),
+            speed=self._start_speed(),
         )
         self.controlled_vehicles = [ego]
         self.road.vehicles.append(ego)
