@@ -31,22 +31,26 @@ import numpy as np
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # name: (algorithm, constructor kwargs); "action_noise_std" becomes a NormalActionNoise
     "dacerf": ("DACERF", {}),
-    "dacerf-paper": ("DACERF", dict(learning_rate=1e-4, batch_size=512, policy_kwargs=dict(optimizer_class="RAD"))),
-    "dacerf-noise": ("DACERF", dict(action_noise_std=0.1)),
+    # the paper's own settings (sb3_dacerf.dacerf.PAPER_HYPERPARAMETERS) and the defaults of version 0.1.0
+    "dacerf-paper": ("DACERF", dict(paper=True)),
+    "dacerf-v010": ("DACERF", dict(tau=0.001, ent_coef=0.0, flow_matching_weights="q_scale")),
+    # ablations of the defaults, one change each
+    "dacerf-noreg": ("DACERF", dict(ent_coef=0.0)),
+    "dacerf-alpha1": ("DACERF", dict(ent_coef="auto_1")),
+    "dacerf-entnoise": ("DACERF", dict(entropy_estimate="noise")),
+    "dacerf-qscale": ("DACERF", dict(flow_matching_weights="q_scale")),
+    "dacerf-td3bc": ("DACERF", dict(flow_matching_weights="td3bc")),
+    "dacerf-flowrl": ("DACERF", dict(flow_matching_weights="flowrl")),
+    "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=True))),
+    "dacerf-delay1": ("DACERF", dict(policy_delay=1)),
     "dacerf-steps3": ("DACERF", dict(n_sampling_steps=3)),
-    "dacerf-tau005": ("DACERF", dict(tau=0.005)),
-    "dacerf-tau005-fm01": ("DACERF", dict(tau=0.005, flow_matching_coef=0.1)),
-    # the short-budget remedy: SAC's tau and Gaussian action noise (see README, "Exploration")
-    "dacerf-tuned": ("DACERF", dict(tau=0.005, action_noise_std=0.1)),
-    "dacerf-tuned-rad": ("DACERF", dict(tau=0.005, action_noise_std=0.1, policy_kwargs=dict(optimizer_class="RAD"))),
-    "dacerf-tuned-rad-zeta1": (
-        "DACERF",
-        dict(tau=0.005, action_noise_std=0.1, policy_kwargs=dict(optimizer_class="RAD", optimizer_kwargs=dict(zeta=1.0))),
-    ),
+    "dacerf-tau001": ("DACERF", dict(tau=0.001)),
+    "dacerf-noise": ("DACERF", dict(ent_coef=0.0, action_noise_std=0.1)),
     "dacer": ("DACER", {}),
     "sac": ("SAC", {}),
     "td3": ("TD3", {}),
     "tqc": ("TQC", {}),
+    "crossq": ("CrossQ", {}),
 }
 
 
@@ -57,10 +61,10 @@ def algorithm_class(name: str) -> type:
         import stable_baselines3
 
         return getattr(stable_baselines3, name)
-    if name == "TQC":
-        from sb3_contrib import TQC
+    if name in ("TQC", "CrossQ"):
+        import sb3_contrib
 
-        return TQC
+        return getattr(sb3_contrib, name)
     return getattr(sb3_dacerf, name)
 
 
@@ -69,15 +73,108 @@ def run_file(out: Path, env_id: str, variant: str, seed: int) -> Path:
     return out / "runs" / env_id.replace("/", "_") / f"{variant}-seed{seed}.csv"
 
 
+def checkpoint_dir(out: Path, env_id: str, variant: str, seed: int) -> Path:
+    """Where one run keeps its last checkpoint (model, replay buffer, environment, random states): never committed."""
+    return out / "checkpoints" / env_id.replace("/", "_") / f"{variant}-seed{seed}"
+
+
 def read_rows(path: Path) -> list[dict[str, Any]]:
     import pandas as pd
 
     return pd.read_csv(path).to_dict("records") if path.exists() else []
 
 
+def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_seconds: float) -> None:
+    """
+    Everything a run needs to go on exactly as if it had not stopped: the model (with its optimizers and
+    ``_last_obs``), the filled part of the replay buffer, the training environment (pickled mid-episode, with its
+    random state and VecNormalize statistics), the global random states and the evaluations so far. Written to a
+    temporary folder, then renamed over the previous checkpoint, so a kill while saving keeps the previous one.
+    """
+    import pickle
+    import random
+    import shutil
+
+    import cloudpickle
+    import torch as th
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    tmp = folder.with_name(folder.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    model.save(tmp / "model.zip")
+    buffer = model.replay_buffer
+    size = buffer.buffer_size if buffer.full else buffer.pos
+    arrays = {
+        name: getattr(buffer, name)[:size]
+        for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+        if getattr(buffer, name, None) is not None
+    }
+    np.savez(tmp / "replay_buffer.npz", **arrays)
+    env = model.get_env()
+    # VecNormalize pickles its statistics without the environments it wraps: both are kept
+    normalize = env if isinstance(env, VecNormalize) else None
+    with open(tmp / "env.pkl", "wb") as file:
+        cloudpickle.dump(dict(venv=env.venv if normalize else env, normalize=normalize, returns=getattr(normalize, "returns", None)), file)
+    state = dict(
+        pos=buffer.pos,
+        full=buffer.full,
+        torch=th.get_rng_state(),
+        numpy=np.random.get_state(),
+        python=random.getstate(),
+        action_space=model.action_space.np_random.bit_generator.state,
+        rows=rows,
+        wall_seconds=wall_seconds,
+    )
+    with open(tmp / "state.pkl", "wb") as file:
+        pickle.dump(state, file)
+    old = folder.with_name(folder.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if folder.exists():
+        folder.rename(old)
+    tmp.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, list[dict[str, Any]], float]:
+    """The model (with its environment and replay buffer), the evaluations and the training seconds of a checkpoint."""
+    import pickle
+    import random
+
+    import cloudpickle
+    import torch as th
+
+    with open(folder / "env.pkl", "rb") as file:
+        saved = cloudpickle.load(file)
+    env = saved["venv"]
+    if saved["normalize"] is not None:
+        env = saved["normalize"]
+        env.set_venv(saved["venv"])
+        env.returns = saved["returns"]
+    with open(folder / "state.pkl", "rb") as file:
+        state = pickle.load(file)
+    # force_reset=False: go on from the environment's state and the model's _last_obs
+    model = algorithm.load(folder / "model.zip", env=env, device=device, force_reset=False)
+    buffer = model.replay_buffer
+    with np.load(folder / "replay_buffer.npz") as arrays:
+        for name in arrays.files:
+            getattr(buffer, name)[: len(arrays[name])] = arrays[name]
+    buffer.pos, buffer.full = state["pos"], state["full"]
+    # Loading re-seeds everything (SB3's _setup_model): put the random states back where they were
+    th.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    model.action_space.np_random.bit_generator.state = state["action_space"]
+    return model, state["rows"], state["wall_seconds"]
+
+
 def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
-    """Train one variant with one seed; return one row per evaluation (read back if the run already finished)."""
-    path = run_file(Path(job["out"]), job["env"], job["variant"], job["seed"])
+    """
+    Train one variant with one seed; return one row per evaluation (read back if the run already finished).
+    A run with a checkpoint goes on from it, with the same evaluations as an uninterrupted run.
+    """
+    out = Path(job["out"])
+    path = run_file(out, job["env"], job["variant"], job["seed"])
     done_rows = read_rows(path)
     if done_rows and done_rows[-1]["timesteps"] >= job["timesteps"]:
         print(f"{path}: already finished, not trained again", flush=True)
@@ -88,27 +185,46 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     import torch as th
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.noise import NormalActionNoise
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     import sb3_dacerf  # noqa: F401  (registers the package's environment ids)
+    from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
     th.set_num_threads(1)
-    algorithm, kwargs = VARIANTS[job["variant"]]
+    algorithm_name, kwargs = VARIANTS[job["variant"]]
+    algorithm = algorithm_class(algorithm_name)
     kwargs = dict(kwargs)
-    env = gym.make(job["env"], **job["env_kwargs"])
+    if kwargs.pop("paper", False):
+        kwargs = {**PAPER_HYPERPARAMETERS, **kwargs}
+    if job.get("learning_starts") is not None:
+        kwargs["learning_starts"] = job["learning_starts"]
     eval_env = gym.make(job["env"], **job["env_kwargs"])
-    if "action_noise_std" in kwargs:
-        dim = env.action_space.shape[0]
-        kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
-    model = algorithm_class(algorithm)("MlpPolicy", env, seed=job["seed"], device=job["device"], **kwargs)
+    folder = checkpoint_dir(out, job["env"], job["variant"], job["seed"])
     rows: list[dict[str, Any]] = []
-    start = time.perf_counter()
+    elapsed = 0.0
+    if job["checkpoint_freq"] and (folder / "state.pkl").exists():
+        model, rows, elapsed = load_checkpoint(algorithm, folder, job["device"])
+        print(f"{folder}: resumed at {model.num_timesteps} steps", flush=True)
+    else:
+        env = DummyVecEnv([lambda: gym.make(job["env"], **job["env_kwargs"])])
+        if job["vec_normalize"]:
+            env = VecNormalize(env, norm_obs=True, norm_reward=False)
+        if "action_noise_std" in kwargs:
+            dim = env.action_space.shape[0]
+            kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
+        model = algorithm("MlpPolicy", env, seed=job["seed"], device=job["device"], **kwargs)
+    resumed_at = model.num_timesteps
+    start = time.perf_counter() - elapsed
 
     def evaluate() -> None:
         returns, lengths, successes, collisions, off_road = [], [], [], [], []
+        vec_normalize = model.get_vec_normalize_env()
         for episode in range(job["eval_episodes"]):
             observation, _ = eval_env.reset(seed=10_000 * job["seed"] + episode)
             done, total, length, info = False, 0.0, 0, {}
             while not done:
+                if vec_normalize is not None:
+                    observation = vec_normalize.normalize_obs(observation)
                 action, _ = model.predict(observation, deterministic=True)
                 observation, reward, terminated, truncated, info = eval_env.step(action)
                 total += float(reward)
@@ -120,6 +236,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
             collisions.append(float(info.get("collision", np.nan)))
             off_road.append(float(info.get("off_road", np.nan)))
         spread = model.logger.name_to_value.get("train/action_spread", np.nan)
+        log_alpha = getattr(getattr(model, "actor", None), "log_alpha", None)
         rows.append(
             dict(
                 env=job["env"],
@@ -132,6 +249,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
                 collision_rate=float(np.mean(collisions)),
                 off_road_rate=float(np.mean(off_road)),
                 action_spread=float(spread),
+                ent_coef=float(log_alpha.exp()) if log_alpha is not None else np.nan,
                 wall_seconds=time.perf_counter() - start,
             )
         )
@@ -139,13 +257,19 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
         pd.DataFrame(rows).to_csv(path, index=False)
         print(json.dumps(rows[-1]), flush=True)
 
-    class Evaluate(BaseCallback):
+    class EvaluateAndCheckpoint(BaseCallback):
         def _on_step(self) -> bool:
             if self.num_timesteps % job["eval_freq"] == 0:
                 evaluate()
             return True
 
-    model.learn(job["timesteps"], callback=Evaluate())
+        def _on_rollout_start(self) -> None:
+            # Between the gradient steps of one environment step and the next one: the point a resumed run starts from
+            steps = self.num_timesteps
+            if job["checkpoint_freq"] and steps > resumed_at and steps % job["checkpoint_freq"] == 0:
+                save_checkpoint(self.model, folder, rows, time.perf_counter() - start)
+
+    model.learn(job["timesteps"] - model.num_timesteps, callback=EvaluateAndCheckpoint(), reset_num_timesteps=resumed_at == 0)
     return rows
 
 
@@ -222,6 +346,18 @@ def main() -> None:
     )
     parser.add_argument("--out", help="results folder (default: benchmarks/results, with --quick benchmarks/results/quick)")
     parser.add_argument("--first-seed", type=int, default=0, help="seeds are first-seed .. first-seed + seeds - 1")
+    parser.add_argument(
+        "--checkpoint-freq",
+        type=int,
+        default=5_000,
+        help="save each run every that many steps under <out>/checkpoints (0: never); a repeated command resumes from there",
+    )
+    parser.add_argument("--learning-starts", type=int, help="override every variant's learning_starts")
+    parser.add_argument(
+        "--vec-normalize",
+        action="store_true",
+        help="normalise observations with VecNormalize(norm_obs=True, norm_reward=False), statistics saved in the checkpoints",
+    )
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
     parser.add_argument(
         "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
@@ -252,6 +388,9 @@ def main() -> None:
             device=args.device,
             out=str(out),
             env_kwargs=args.env_kwargs,
+            checkpoint_freq=args.checkpoint_freq,
+            learning_starts=args.learning_starts,
+            vec_normalize=args.vec_normalize,
         )
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants

@@ -11,6 +11,7 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
 
 from sb3_dacerf import DACERF
+from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
 # Small and fast: the behaviour under test does not depend on the network size
 FAST = dict(learning_starts=50, batch_size=32, buffer_size=2_000, policy_kwargs=dict(net_arch=[32, 32]))
@@ -27,9 +28,13 @@ def test_learns_on_box_observations_and_logs_the_paper_quantities(tmp_path):
     assert model.actor.n_sampling_steps == 1
 
 
-def test_paper_defaults():
+def test_defaults_and_paper_preset():
     model = DACERF("MlpPolicy", "Pendulum-v1")
-    assert (model.tau, model.policy_delay, model.gamma) == (0.001, 3, 0.99)
+    assert (model.tau, model.policy_delay, model.gamma) == (0.005, 3, 0.99)
+    assert (model.ent_coef, model.flow_matching_weights) == ("auto", "gain")
+    paper = DACERF("MlpPolicy", "Pendulum-v1", **PAPER_HYPERPARAMETERS)
+    assert (paper.tau, paper.learning_rate, paper.batch_size, paper.ent_coef) == (0.001, 1e-4, 512, 0.0)
+    assert paper.policy.optimizer_class.__name__ == "RAD"
     assert (model.langevin_steps, model.langevin_step_size, model.langevin_temperature) == (20, 0.03, 0.01)
     assert model.actor.n_sampling_steps == 1
     assert model.policy.critic.n_critics == 2
@@ -119,7 +124,7 @@ def test_save_load_gives_identical_deterministic_predictions(tmp_path):
     loaded = DACERF.load(tmp_path / "dacerf")
     np.testing.assert_array_equal(loaded.predict(observations, deterministic=True)[0], actions)
     assert loaded.actor.n_sampling_steps == 2
-    assert (loaded.langevin_steps, loaded.policy_delay, loaded.tau) == (20, 3, 0.001)
+    assert (loaded.langevin_steps, loaded.policy_delay, loaded.tau) == (20, 3, 0.005)
     for key, value in model.actor.optimizer.state_dict()["state"][0].items():
         assert th.equal(value, loaded.actor.optimizer.state_dict()["state"][0][key])
 

@@ -9,6 +9,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     FlattenExtractor,
+    create_mlp,
     get_actor_critic_arch,
 )
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
@@ -101,6 +102,8 @@ class TwinCriticPolicy(BasePolicy):
     :param share_features_extractor: Whether to share or not the features extractor
         between the actor and the critic (this saves computation time)
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
+    :param critic_layer_norm: Use critics with ``LayerNorm`` after every hidden layer (:class:`LayerNormCritic`)
+        instead of SB3's plain MLP critics
     """
 
     actor_class: ClassVar[type[GenerativeActor]]
@@ -123,6 +126,7 @@ class TwinCriticPolicy(BasePolicy):
         n_critics: int = 2,
         share_features_extractor: bool = False,
         actor_kwargs: dict[str, Any] | None = None,
+        critic_layer_norm: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -159,6 +163,7 @@ class TwinCriticPolicy(BasePolicy):
             }
         )
         self.share_features_extractor = share_features_extractor
+        self.critic_layer_norm = critic_layer_norm
 
         self._build(lr_schedule)
 
@@ -204,6 +209,7 @@ class TwinCriticPolicy(BasePolicy):
                 features_extractor_class=self.features_extractor_class,
                 features_extractor_kwargs=self.features_extractor_kwargs,
                 share_features_extractor=self.share_features_extractor,
+                critic_layer_norm=self.critic_layer_norm,
             )
         )
         return data
@@ -214,7 +220,8 @@ class TwinCriticPolicy(BasePolicy):
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return ContinuousCritic(**critic_kwargs).to(self.device)
+        critic_class = LayerNormCritic if self.critic_layer_norm else ContinuousCritic
+        return critic_class(**critic_kwargs).to(self.device)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic=deterministic)
@@ -237,3 +244,41 @@ class TwinCriticPolicy(BasePolicy):
         self.actor.set_training_mode(mode)
         self.critic.set_training_mode(mode)
         self.training = mode
+
+
+class LayerNormCritic(ContinuousCritic):
+    """
+    SB3's twin ``ContinuousCritic`` with ``LayerNorm`` after every hidden linear layer (before the activation),
+    as in the critics of BRO, SimBa and FlowRL: normalised features keep the Q-values and ``∇_a Q`` (which drives
+    the Langevin targets) on a stable scale. Same arguments as ``ContinuousCritic``.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        n_critics: int = 2,
+        share_features_extractor: bool = True,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            net_arch,
+            features_extractor,
+            features_dim,
+            activation_fn=activation_fn,
+            normalize_images=normalize_images,
+            n_critics=n_critics,
+            share_features_extractor=share_features_extractor,
+        )
+        input_dim = features_dim + get_action_dim(action_space)
+        self.q_networks = nn.ModuleList()
+        for idx in range(n_critics):
+            q_net = nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, post_linear_modules=[nn.LayerNorm]))
+            self.add_module(f"qf{idx}", q_net)
+            self.q_networks.append(q_net)

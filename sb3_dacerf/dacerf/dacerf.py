@@ -1,3 +1,4 @@
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -6,8 +7,8 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
-from torch.nn import functional as F
 
+from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
 from sb3_dacerf.common.langevin import MinQActionGradient, compiled_langevin_targets, langevin_targets
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
 from sb3_dacerf.common.utils import frozen
@@ -23,11 +24,19 @@ class DACERF(TwinCriticAlgorithm):
     plus the usual ``-Q(s, π(s))`` improvement term; twin critics with target networks as in TD3/SAC.
     Paper: "DACER-F: Langevin-guided flow matching for real-time autonomous driving", arXiv:2603.02613.
 
-    The actor loss is ``J_F = -Q(s, π(s)) + λ_f ||v(s, a_t, t) - (a* - a_0)||²`` with the per-sample weight
-    ``λ_f = flow_matching_coef * mean|Q(s, π(s))| * g / mean(g)``, ``g = ReLU(Q(s, a*) - Q(s, a_B))``:
-    the paper's advantage weighting ``λ_f ∝ ReLU(Q(s, a*) - Q(s, a_B))``, normalised by its batch mean and
-    by the Q scale so that the balance of the two terms does not drift with the reward scale.
+    The actor loss is ``J_F = mean(-Q(s, π(s)) / κ + λ_f ||v(s, a_t, t) - (a* - a_0)||²)`` with the paper's
+    advantage weighting ``λ_f ∝ g = ReLU(Q(s, a*) - Q(s, a_B))`` per sample, normalised by its batch mean; by default
+    (``flow_matching_weights="gain"``) the improvement term is expressed in units of the batch's mean Langevin gain
+    (``κ = mean(g)``), so that the balance of the two terms does not depend on the reward's scale or shift
+    (see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights` for the alternatives).
     Every Q above is ``min(Q_1, Q_2)``, the same pessimistic estimate as in the Bellman target.
+
+    Entropy regulator (the "ER" of DACER-F, as in DACER): a flow sampled in one Euler step from independent noise
+    tends to a deterministic policy, so stochastic actions get Gaussian noise ``N(0, (0.15 α)²)`` on top, during
+    rollouts and for the next action ``a'`` of the critic target. ``α`` is learned (``ent_coef="auto"``) towards
+    ``target_entropy`` with SAC's temperature loss on an entropy estimate of the noisy policy. Deterministic actions
+    (``predict(..., deterministic=True)``, exported graphs) are noise-free. ``ent_coef=0`` is the paper's exact
+    mechanism (no added noise); :data:`PAPER_HYPERPARAMETERS` holds all of the paper's settings.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
     :param env: The environment to learn from (if registered in Gym, can be str)
@@ -57,6 +66,17 @@ class DACERF(TwinCriticAlgorithm):
     :param langevin_temperature: Temperature ``α`` of the energy-based target ``exp(Q / α)``
     :param n_sampling_steps: Number of Euler steps of the flow sampler (1 in the paper: one network call per action)
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
+    :param flow_matching_weights: How the two terms of the actor loss are weighted: ``"gain"`` (scale- and
+        shift-free, the default), ``"q_scale"`` (``λ_f`` times ``mean|Q|``, version 0.1.0 and the paper preset),
+        ``"td3bc"`` or ``"flowrl"`` (see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights`)
+    :param ent_coef: Entropy regulator coefficient ``α``, the exploration noise being ``N(0, (0.15 α)²)``.
+        ``"auto"`` learns it starting from ``α = 3`` (DACER's initial value), ``"auto_0.5"`` starting from 0.5;
+        a float fixes it; ``0`` adds no noise (the paper's mechanism)
+    :param target_entropy: Target entropy of the noisy policy when ``α`` is learned; ``"auto"`` is ``-dim(A)``
+        (SAC's choice)
+    :param entropy_estimate: How the policy's entropy is estimated to learn ``α``: ``"fit"`` fits a diagonal
+        Gaussian to 8 flow samples at each of 32 states of the batch (flow spread plus the noise's variance),
+        ``"noise"`` uses the closed-form entropy of the added noise only (the flow taken as deterministic)
     :param compile_langevin: Run the Langevin loop through ``torch.compile`` (same targets; the first update
         compiles for ~30 s on a CPU, then the loop is faster: see benchmarks/iteration_time.py)
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -88,7 +108,7 @@ class DACERF(TwinCriticAlgorithm):
         buffer_size: int = 1_000_000,  # 1e6
         learning_starts: int = 100,
         batch_size: int = 256,
-        tau: float = 0.001,
+        tau: float = 0.005,
         gamma: float = 0.99,
         train_freq: int | tuple[int, str] = 1,
         gradient_steps: int = 1,
@@ -103,6 +123,10 @@ class DACERF(TwinCriticAlgorithm):
         langevin_temperature: float = 0.01,
         n_sampling_steps: int = 1,
         flow_matching_coef: float = 1.0,
+        flow_matching_weights: str = "gain",
+        ent_coef: str | float = "auto",
+        target_entropy: str | float = "auto",
+        entropy_estimate: str = "fit",
         compile_langevin: bool = False,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -142,6 +166,13 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
         self.flow_matching_coef = flow_matching_coef
+        self.flow_matching_weights = flow_matching_weights
+        # Entropy regulator
+        self.ent_coef = ent_coef
+        self.target_entropy = target_entropy
+        self.entropy_estimate = entropy_estimate
+        self.ent_coef_optimizer: th.optim.Adam | None = None
+        self._n_actor_updates = 0
         # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
         self.policy_kwargs = {**self.policy_kwargs, "n_sampling_steps": n_sampling_steps}
         # torch.compile of the Langevin loop (an option: compiling costs ~30 s at the first update)
@@ -150,82 +181,194 @@ class DACERF(TwinCriticAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        if self.flow_matching_weights not in FLOW_MATCHING_WEIGHTS:
+            raise ValueError(
+                f"Invalid flow_matching_weights={self.flow_matching_weights!r}: it must be one of {', '.join(FLOW_MATCHING_WEIGHTS)}."
+            )
+        if self.entropy_estimate not in ("fit", "noise"):
+            raise ValueError(f"Invalid entropy_estimate={self.entropy_estimate!r}: it must be 'fit' or 'noise'.")
+        if self.target_entropy == "auto":
+            self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+        elif isinstance(self.target_entropy, bool) or not isinstance(self.target_entropy, (int, float, np.number)):
+            raise ValueError(f"Invalid target_entropy={self.target_entropy!r}: it must be 'auto' or a number (e.g. -dim(A)).")
+        self.target_entropy = float(self.target_entropy)
+        initial_ent_coef = self._initial_ent_coef()
+        self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
+        if self._learns_ent_coef():
+            self.actor.log_alpha.requires_grad_(False)
+            self.ent_coef_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.lr_schedule(1))
+
+    def _learns_ent_coef(self) -> bool:
+        return isinstance(self.ent_coef, str)
+
+    def _initial_ent_coef(self) -> float:
+        """The initial ``α`` of ``ent_coef`` (checked: 0 turns the regulator off, learned values start above 0)."""
+        value: Any = self.ent_coef
+        error = (
+            f"Invalid ent_coef={self.ent_coef!r}: it must be 'auto' (learned from α = 3), 'auto_<initial α > 0>' "
+            "(e.g. 'auto_0.5'), a number >= 0 (fixed α), or 0 for no exploration noise (the paper's mechanism)."
+        )
+        if isinstance(value, str):
+            if value == "auto":
+                return 3.0
+            if not value.startswith("auto_"):
+                raise ValueError(error)
+            try:
+                value = float(value[len("auto_") :])
+            except ValueError:
+                raise ValueError(error) from None
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(error)
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not (0 <= value < math.inf):
+            raise ValueError(error)
+        return float(value)
+
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
-        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+        optimizers = [self.actor.optimizer, self.critic.optimizer]
+        if self.ent_coef_optimizer is not None:
+            optimizers.append(self.ent_coef_optimizer)
+        self._update_learning_rate(optimizers)
 
-        critic_losses, actor_losses, flow_matching_losses, langevin_gains, lambda_fs = [], [], [], [], []
+        critic_losses: list[float] = []
+        actor_logs: dict[str, list[float]] = {}
 
         for _ in range(gradient_steps):
             self._n_updates += 1
             # Replay: a batch (s, a_B, r, s', done), actions a_B in [-1, 1]
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            observations, actions_buffer = replay_data.observations, replay_data.actions
 
-            # Critic update, J_Q: y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s')
+            # Critic update, J_Q: y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s') with the exploration noise
             critic_losses.append(self._update_critic(replay_data))
 
-            # Actor update, every `policy_delay` critic updates
+            # Actor (and α) update, every `policy_delay` critic updates
             if self._n_updates % self.policy_delay == 0:
-                with frozen(self._critic_parameters()):
-                    # Langevin targets a* from the replay actions (Algorithm 1), gradients w.r.t. actions only
-                    langevin = compiled_langevin_targets() if self.compile_langevin else langevin_targets
-                    actions_star = langevin(
-                        MinQActionGradient(self.critic, observations),  # ∇_a min_j Q_j(s, a)
-                        actions_buffer,
-                        n_steps=self.langevin_steps,
-                        step_size=self.langevin_step_size,
-                        temperature=self.langevin_temperature,
-                    )
-                    with th.no_grad():
-                        langevin_gain = self._min_q(observations, actions_star) - self._min_q(observations, actions_buffer)
-
-                    # Policy improvement term: -Q(s, π(s)), through the one-step sampler
-                    features = self.actor.extract_features(observations, self.actor.features_extractor)
-                    actions_pi = self.actor.sample(features, th.randn_like(actions_star))
-                    q_values_pi = self._min_q(observations, actions_pi)
-
-                    # Flow-matching term on the path a_t = (1 - t) a_0 + t a*, target velocity a* - a_0
-                    noise = th.randn_like(actions_star)
-                    time = th.rand((actions_star.shape[0], 1), device=actions_star.device)
-                    actions_t = (1 - time) * noise + time * actions_star
-                    velocity = self.actor.velocity(features, actions_t, time)
-                    flow_error = (velocity - (actions_star - noise)).pow(2).sum(dim=1, keepdim=True)
-
-                    # λ_f ∝ ReLU(Q(s, a*) - Q(s, a_B)), per sample, mean 1 over the batch, times the Q scale
-                    gain = F.relu(langevin_gain)
-                    lambda_f = self.flow_matching_coef * q_values_pi.abs().mean().detach() * gain / (gain.mean() + 1e-8)
-
-                    actor_loss = (-q_values_pi + lambda_f * flow_error).mean()
-                actor_losses.append(self._checked(actor_loss, "actor loss", replay_data))
-                flow_matching_losses.append(flow_error.mean().item())
-                langevin_gains.append(langevin_gain.mean().item())
-                lambda_fs.append(lambda_f.mean().item())
-
-                self.actor.optimizer.zero_grad()
-                actor_loss.backward()
-                self.actor.optimizer.step()
+                for key, value in self._update_actor(replay_data).items():
+                    actor_logs.setdefault(key, []).append(value)
 
             # Target networks: Q̄ <- (1 - τ) Q̄ + τ Q
             self._update_targets()
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_loss", np.mean(critic_losses))
-        if len(actor_losses) > 0:
-            self.logger.record("train/actor_loss", np.mean(actor_losses))
-            self.logger.record("train/flow_matching_loss", np.mean(flow_matching_losses))
-            self.logger.record("train/langevin_gain", np.mean(langevin_gains))
-            self.logger.record("train/lambda_f", np.mean(lambda_fs))
-            self.logger.record("train/action_spread", self._action_spread(observations))
+        self.logger.record("train/ent_coef", self.actor.log_alpha.exp().item())
+        for key, values in actor_logs.items():
+            finite = [value for value in values if math.isfinite(value)]
+            if finite:
+                self.logger.record(f"train/{key}", np.mean(finite))
+
+    def _update_actor(self, replay_data: Any) -> dict[str, float]:
+        """One gradient step on the actor loss ``J_F`` (and on ``α`` when it is learned); returns the values to log."""
+        observations, actions_buffer = replay_data.observations, replay_data.actions
+        logs: dict[str, float] = {}
+        with frozen(self._critic_parameters()):
+            # Langevin targets a* from the replay actions (Algorithm 1), gradients w.r.t. actions only
+            langevin = compiled_langevin_targets() if self.compile_langevin else langevin_targets
+            actions_star = langevin(
+                MinQActionGradient(self.critic, observations),  # ∇_a min_j Q_j(s, a)
+                actions_buffer,
+                n_steps=self.langevin_steps,
+                step_size=self.langevin_step_size,
+                temperature=self.langevin_temperature,
+            )
+            with th.no_grad():
+                q_values_star = self._min_q(observations, actions_star)
+                q_values_buffer = self._min_q(observations, actions_buffer)
+
+            # Policy improvement term: -Q(s, π(s)), through the sampler (no exploration noise)
+            features = self.actor.extract_features(observations, self.actor.features_extractor)
+            actions_pi = self.actor.sample(features, th.randn_like(actions_star))
+            q_values_pi = self._min_q(observations, actions_pi)
+
+            # Flow-matching (imitation) term towards a*, weighted by λ_f ∝ the Langevin gain
+            flow_error = flow_matching_loss(lambda actions_t, time: self.actor.velocity(features, actions_t, time), actions_star)
+            kappa, lambda_f = actor_loss_weights(
+                self.flow_matching_weights, q_values_pi, q_values_star, q_values_buffer, self.flow_matching_coef
+            )
+            improvement_term = (-q_values_pi / kappa).mean()
+            imitation_term = (lambda_f * flow_error).mean()
+            actor_loss = improvement_term + imitation_term
+        logs["actor_loss"] = self._checked(actor_loss, "actor loss", replay_data)
+
+        self._n_actor_updates += 1
+        if self._n_actor_updates % 250 == 1:
+            # Balance diagnostic (every 250 actor updates): ratio of the two terms' gradient norms on the actor
+            parameters = [param for param in self.actor.parameters() if param.requires_grad]
+            norms = []
+            for term in (imitation_term, improvement_term):
+                gradients = th.autograd.grad(term, parameters, retain_graph=True, allow_unused=True)
+                norms.append(th.sqrt(sum((g.pow(2).sum() for g in gradients if g is not None), th.tensor(0.0))).item())
+            logs["imitation_to_improvement_grad"] = norms[0] / max(norms[1], 1e-12)
+
+        self.actor.optimizer.zero_grad()
+        actor_loss.backward()
+        self.actor.optimizer.step()
+
+        # Entropy regulator: estimate H of the noisy policy, then step log α on J(α) = log α (H - H_target)
+        entropy, spread = self._entropy_and_spread(features.detach())
+        if self.ent_coef_optimizer is not None:
+            ent_coef_gradient = entropy - self.target_entropy  # type: ignore[operator]
+            self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, ent_coef_gradient)
+            self.ent_coef_optimizer.step()
+            logs["ent_coef_loss"] = self.actor.log_alpha.item() * ent_coef_gradient
+
+        logs.update(
+            flow_matching_loss=flow_error.mean().item(),
+            langevin_gain=(q_values_star - q_values_buffer).mean().item(),
+            lambda_f=lambda_f.mean().item(),
+            improvement_scale=kappa.item(),
+            improvement_term=improvement_term.item(),
+            imitation_term=imitation_term.item(),
+            entropy=entropy,
+            action_spread=spread,
+        )
+        return logs
 
     @th.no_grad()
-    def _action_spread(self, observations: PyTorchObs, n_states: int = 32, n_samples: int = 8) -> float:
+    def _entropy_and_spread(self, features: th.Tensor, n_states: int = 32, n_samples: int = 8) -> tuple[float, float]:
         """
-        Exploration diagnostic: standard deviation of the policy's actions over ``n_samples`` noises ``a_0``
-        at fixed states, averaged over action dimensions and ``n_states`` states (0 = a deterministic policy).
+        Entropy estimate of the noisy policy, per ``entropy_estimate``, and the flow's own ``action_spread``:
+        the standard deviation of its actions over ``n_samples`` noises ``a_0`` at ``n_states`` fixed states,
+        averaged over action dimensions and states (0 = a deterministic flow).
         """
-        features = self.actor.extract_features(observations, self.actor.features_extractor)[:n_states]
-        features = features.repeat_interleave(n_samples, dim=0)
+        features = features[:n_states].repeat_interleave(n_samples, dim=0)
         actions = self.actor.sample(features, th.randn((features.shape[0], self.actor.action_dim), device=features.device))
-        return actions.view(-1, n_samples, self.actor.action_dim).std(dim=1).mean().item()
+        variance = actions.view(-1, n_samples, self.actor.action_dim).var(dim=1)  # (n_states, action_dim)
+        spread = variance.sqrt().mean().item()
+        noise_variance = self.actor.exploration_std.pow(2)
+        if self.entropy_estimate == "noise":
+            variance = th.zeros_like(variance)
+        variance = variance + noise_variance
+        if not bool((variance > 0).all()):
+            return -math.inf, spread
+        entropy = 0.5 * (math.log(2 * math.pi * math.e) + variance.log()).sum(dim=1).mean().item()
+        return entropy, spread
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, saved_variables = super()._get_torch_save_params()
+        if self.ent_coef_optimizer is not None:
+            state_dicts = [*state_dicts, "ent_coef_optimizer"]
+        return state_dicts, saved_variables
+
+
+#: The paper's own training hyper-parameters (Table "Training hyper-parameters"), for ``DACERF(..., **PAPER_HYPERPARAMETERS)``:
+#: learning rate 1e-4, replay batch 512, RAD, tau 0.001, policy delay 3, no added exploration noise, and 0.1.0's
+#: ``λ_f = mean|Q| · g / mean(g)``.
+PAPER_HYPERPARAMETERS: dict[str, Any] = dict(
+    learning_rate=1e-4,
+    batch_size=512,
+    tau=0.001,
+    gamma=0.99,
+    policy_delay=3,
+    langevin_steps=20,
+    langevin_step_size=0.03,
+    langevin_temperature=0.01,
+    n_sampling_steps=1,
+    flow_matching_weights="q_scale",
+    ent_coef=0.0,
+    policy_kwargs=dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16)),
+)

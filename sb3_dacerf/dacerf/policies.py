@@ -22,16 +22,26 @@ class VelocityField(GenerativeActor):
     the algorithm rescales [-1, 1] to the action space's bounds. ``deterministic=True`` starts from the
     prior's mean ``a_0 = 0``, so the same observation always gives the same action.
 
+    Stochastic actions get the entropy regulator's exploration noise ``N(0, (exploration_noise_scale · α)²)``
+    on top, ``α = exp(log_alpha)`` set by the algorithm (``ent_coef``), then are clipped to [-1, 1] again;
+    deterministic actions and :meth:`sample` never have it.
+
     Takes the arguments of :class:`sb3_dacerf.common.policies.GenerativeActor` (``observation_space``,
     ``action_space``, ``net_arch`` of the velocity network, ``features_extractor``, ``features_dim``,
     ``activation_fn``, ``normalize_images``) and:
 
     :param n_sampling_steps: Number of Euler steps from noise to action
+    :param exploration_noise_scale: Standard deviation of the exploration noise at ``α = 1`` (DACER's 0.15)
     """
 
-    def __init__(self, *args: Any, n_sampling_steps: int = 1, **kwargs: Any):
+    log_alpha: th.Tensor
+
+    def __init__(self, *args: Any, n_sampling_steps: int = 1, exploration_noise_scale: float = 0.15, **kwargs: Any):
         super().__init__(*args, **kwargs)
         self.n_sampling_steps = n_sampling_steps
+        self.exploration_noise_scale = exploration_noise_scale
+        # log α of the entropy regulator (-inf: no exploration noise); set and learned by the algorithm
+        self.register_buffer("log_alpha", th.tensor(float("-inf")))
         # Input: state features, the point a_t on the path, and the time t
         self.velocity_net = nn.Sequential(
             *create_mlp(self.features_dim + self.action_dim + 1, self.action_dim, self.net_arch, self.activation_fn)
@@ -39,8 +49,13 @@ class VelocityField(GenerativeActor):
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(n_sampling_steps=self.n_sampling_steps)
+        data.update(n_sampling_steps=self.n_sampling_steps, exploration_noise_scale=self.exploration_noise_scale)
         return data
+
+    @property
+    def exploration_std(self) -> th.Tensor:
+        """Standard deviation of the exploration noise added to stochastic actions: ``exploration_noise_scale · α``."""
+        return self.exploration_noise_scale * self.log_alpha.exp()
 
     def velocity(self, features: th.Tensor, actions: th.Tensor, time: th.Tensor) -> th.Tensor:
         """
@@ -70,10 +85,11 @@ class VelocityField(GenerativeActor):
         features = self.extract_features(obs, self.features_extractor)
         shape = (features.shape[0], self.action_dim)
         if deterministic:
-            noise = th.zeros(shape, device=features.device, dtype=features.dtype)
-        else:
-            noise = th.randn(shape, device=features.device, dtype=features.dtype)
-        return self.sample(features, noise)
+            return self.sample(features, th.zeros(shape, device=features.device, dtype=features.dtype))
+        actions = self.sample(features, th.randn(shape, device=features.device, dtype=features.dtype))
+        if self.log_alpha.item() == float("-inf"):
+            return actions
+        return (actions + self.exploration_std * th.randn_like(actions)).clamp(-1.0, 1.0)
 
 
 class DACERFPolicy(TwinCriticPolicy):

@@ -1,0 +1,175 @@
+"""DACER-F's entropy regulator (exploration noise 0.15·α, α learned) and the weighting of the actor loss."""
+
+import math
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_dacerf import DACERF
+from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
+
+FAST = dict(learning_starts=50, batch_size=32, buffer_size=2_000, policy_kwargs=dict(net_arch=[32, 32]))
+
+
+def observations(model: DACERF, n: int = 16) -> th.Tensor:
+    return th.as_tensor(np.stack([model.observation_space.sample() for _ in range(n)]))
+
+
+@pytest.mark.parametrize("ent_coef", [0.5, 2.0])
+def test_noise_scale_follows_alpha(ent_coef):
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, ent_coef=ent_coef, **FAST)
+    obs = observations(model)
+    features = model.actor.extract_features(obs, model.actor.features_extractor)
+    th.manual_seed(7)
+    noisy = model.actor(obs)
+    th.manual_seed(7)
+    a0 = th.randn((len(obs), 1))
+    xi = th.randn((len(obs), 1))
+    expected = (model.actor.sample(features, a0) + 0.15 * ent_coef * xi).clamp(-1, 1)
+    assert math.isclose(model.actor.exploration_std.item(), 0.15 * ent_coef, rel_tol=1e-6)
+    th.testing.assert_close(noisy, expected)
+
+
+def test_no_noise_with_ent_coef_zero_and_deterministic_predict_unchanged_by_alpha():
+    quiet = DACERF("MlpPolicy", "Pendulum-v1", seed=0, ent_coef=0.0, **FAST)
+    obs = observations(quiet)
+    features = quiet.actor.extract_features(obs, quiet.actor.features_extractor)
+    th.manual_seed(3)
+    actions = quiet.actor(obs)
+    th.manual_seed(3)
+    th.testing.assert_close(actions, quiet.actor.sample(features, th.randn((len(obs), 1))))
+
+    deterministic = quiet.predict(obs.numpy(), deterministic=True)[0]
+    quiet.actor.log_alpha.fill_(math.log(5.0))  # a large α changes stochastic actions only
+    np.testing.assert_array_equal(quiet.predict(obs.numpy(), deterministic=True)[0], deterministic)
+    assert not np.allclose(quiet.predict(obs.numpy(), deterministic=False)[0], deterministic)
+
+
+@pytest.mark.parametrize("entropy_estimate", ["fit", "noise"])
+@pytest.mark.parametrize("direction", [1, -1])
+def test_alpha_moves_towards_the_target_entropy(entropy_estimate, direction):
+    # A target far above (below) any entropy the policy has: α can only grow (shrink)
+    model = DACERF(
+        "MlpPolicy",
+        "Pendulum-v1",
+        seed=0,
+        ent_coef="auto_1",
+        target_entropy=10.0 * direction,
+        entropy_estimate=entropy_estimate,
+        policy_delay=1,
+        **FAST,
+    )
+    model.learn(150)
+    alpha = model.actor.log_alpha.exp().item()
+    assert (alpha - 1.0) * direction > 0.02
+    assert model.logger.name_to_value["train/ent_coef"] == pytest.approx(alpha)
+    assert "train/ent_coef_loss" in model.logger.name_to_value and "train/entropy" in model.logger.name_to_value
+
+
+def test_fixed_alpha_is_not_learned():
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, ent_coef=0.7, **FAST)
+    model.learn(120)
+    assert model.ent_coef_optimizer is None
+    assert model.actor.log_alpha.exp().item() == pytest.approx(0.7)
+
+
+def test_save_and_load_restore_alpha_and_its_optimizer(tmp_path):
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, policy_delay=1, **FAST)
+    model.learn(120)
+    assert model.actor.log_alpha.item() != pytest.approx(math.log(3.0))  # learned away from α = 3
+    model.save(tmp_path / "model.zip")
+    loaded = DACERF.load(tmp_path / "model.zip")
+    assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item()
+    saved_state, loaded_state = model.ent_coef_optimizer.state_dict(), loaded.ent_coef_optimizer.state_dict()
+    for key in ("step", "exp_avg", "exp_avg_sq"):
+        th.testing.assert_close(loaded_state["state"][0][key], saved_state["state"][0][key])
+    assert loaded.ent_coef_optimizer.param_groups[0]["params"][0] is loaded.actor.log_alpha
+    loaded.set_env(model.get_env())
+    loaded.learn(20, reset_num_timesteps=False)  # and it goes on learning
+
+
+def test_paper_mechanism_has_no_noise_and_no_alpha_update():
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, ent_coef=0, **FAST)
+    model.learn(120)
+    assert model.actor.exploration_std.item() == 0.0
+    assert model.logger.name_to_value["train/ent_coef"] == 0.0
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(ent_coef="automatic"), "ent_coef"),
+        (dict(ent_coef="auto_-1"), "ent_coef"),
+        (dict(ent_coef=-0.1), "ent_coef"),
+        (dict(ent_coef=float("inf")), "ent_coef"),
+        (dict(target_entropy="high"), "target_entropy"),
+        (dict(entropy_estimate="gmm"), "entropy_estimate"),
+        (dict(flow_matching_weights="advantage"), "flow_matching_weights"),
+    ],
+)
+def test_invalid_regulator_and_weighting_values_raise_clear_errors(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        DACERF("MlpPolicy", "Pendulum-v1", **kwargs)
+
+
+def random_q_values(seed: int = 0) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+    # float64: a shift by 1600 leaves float32 Q-values too few digits for their differences
+    generator = th.Generator().manual_seed(seed)
+    q_buffer = th.randn((64, 1), generator=generator, dtype=th.float64) * 5 - 20
+    q_star = q_buffer + th.rand((64, 1), generator=generator, dtype=th.float64) * 0.3 - 0.05
+    q_pi = q_buffer + th.randn((64, 1), generator=generator, dtype=th.float64) * 0.2
+    return q_pi, q_star, q_buffer
+
+
+@pytest.mark.parametrize("method", ["gain", "td3bc", "q_scale", "flowrl"])
+def test_lambda_f_is_proportional_to_the_langevin_gain_and_invariant_to_a_reward_shift(method):
+    q_pi, q_star, q_buffer = random_q_values()
+    kappa, lambda_f = actor_loss_weights(method, q_pi, q_star, q_buffer)
+    gain = (q_star - q_buffer).clamp_min(0)
+    order = gain.flatten().argsort()
+    assert (lambda_f.flatten()[order].diff() >= -1e-12).all()  # more gain, more imitation
+    if method in ("gain", "td3bc", "q_scale"):
+        assert (lambda_f[gain == 0] == 0).all()  # no imitation without a Langevin gain
+        ratio = lambda_f[gain > 0] / gain[gain > 0]
+        th.testing.assert_close(ratio, th.full_like(ratio, ratio[0].item()))  # λ_f ∝ gain
+    # A shift of the reward by c shifts every Q by c / (1 - γ): "gain" and "flowrl" weights do not move
+    shift = 1600.0
+    kappa_shifted, lambda_shifted = actor_loss_weights(method, q_pi + shift, q_star + shift, q_buffer + shift)
+    if method in ("gain", "flowrl"):
+        th.testing.assert_close(lambda_shifted, lambda_f, rtol=1e-4, atol=1e-6)
+        th.testing.assert_close(kappa_shifted, kappa)
+    else:  # the weightings that scale with |Q| drift with a shift
+        assert not th.allclose(lambda_shifted / kappa_shifted, lambda_f / kappa, rtol=0.1)
+
+
+def test_gain_weighting_balance_does_not_depend_on_the_reward_scale():
+    q_pi, q_star, q_buffer = random_q_values()
+    kappa, lambda_f = actor_loss_weights("gain", q_pi, q_star, q_buffer)
+    kappa_10, lambda_10 = actor_loss_weights("gain", 10 * q_pi, 10 * q_star, 10 * q_buffer)
+    # -Q/κ and λ_f: the same loss for rewards ten times larger
+    th.testing.assert_close(lambda_10, lambda_f)
+    th.testing.assert_close(10 * q_pi / kappa_10, q_pi / kappa)
+    assert set(FLOW_MATCHING_WEIGHTS) == {"gain", "q_scale", "td3bc", "flowrl"}
+
+
+def test_gain_weighting_stays_finite_without_any_langevin_gain():
+    q_pi, _, q_buffer = random_q_values()
+    kappa, lambda_f = actor_loss_weights("gain", q_pi, q_buffer - 1.0, q_buffer)
+    assert th.isfinite(kappa) and kappa > 0 and (lambda_f == 0).all()
+
+
+def test_flow_matching_loss_is_zero_for_the_exact_velocity():
+    targets, noise = th.randn((8, 3)), th.randn((8, 3))
+    exact = flow_matching_loss(lambda a_t, t: targets - noise, targets, noise=noise)
+    assert exact.shape == (8, 1) and th.all(exact == 0)
+    assert th.all(flow_matching_loss(lambda a_t, t: th.zeros_like(a_t), targets, noise=noise) > 0)
+
+
+def test_actor_loss_terms_and_their_balance_are_logged():
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, policy_delay=1, **FAST)
+    model.learn(120)
+    logged = model.logger.name_to_value
+    for key in ("improvement_term", "imitation_term", "improvement_scale", "lambda_f", "imitation_to_improvement_grad"):
+        assert math.isfinite(logged[f"train/{key}"]), key
+    assert logged["train/imitation_to_improvement_grad"] > 0

@@ -1,0 +1,60 @@
+"""benchmarks/learning_curves.py: a run stopped and resumed from its checkpoint gives the evaluations of an uninterrupted run."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def learning_curves():
+    spec = importlib.util.spec_from_file_location("learning_curves", BENCHMARKS / "learning_curves.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["learning_curves"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def job(out: Path, variant: str, timesteps: int, **overrides) -> dict:
+    settings = dict(
+        env="Pendulum-v1",
+        variant=variant,
+        seed=3,
+        timesteps=timesteps,
+        eval_freq=100,
+        eval_episodes=1,
+        device="cpu",
+        out=str(out),
+        env_kwargs={},
+        checkpoint_freq=100,
+        learning_starts=50,
+        vec_normalize=False,
+    )
+    return {**settings, **overrides}
+
+
+@pytest.mark.parametrize("variant", ["dacerf", "sac"])
+def test_resumed_run_matches_uninterrupted_run(tmp_path, learning_curves, variant):
+    straight = learning_curves.run_one(job(tmp_path / "straight", variant, 300))
+    # A run that stops at 200 steps (its last checkpoint is at 100), then is asked for 300: it resumes from 100
+    first = learning_curves.run_one(job(tmp_path / "resumed", variant, 200))
+    folder = learning_curves.checkpoint_dir(tmp_path / "resumed", "Pendulum-v1", variant, 3)
+    assert (folder / "state.pkl").exists() and (folder / "replay_buffer.npz").exists()
+    resumed = learning_curves.run_one(job(tmp_path / "resumed", variant, 300))
+    returns = [row["mean_return"] for row in straight]
+    assert [row["timesteps"] for row in resumed] == [100, 200, 300]
+    assert [row["mean_return"] for row in resumed] == returns
+    assert [row["mean_return"] for row in first] == returns[:2]
+    # A finished run is read back, not trained again
+    again = learning_curves.run_one(job(tmp_path / "resumed", variant, 300))
+    assert [row["mean_return"] for row in again] == returns
+
+
+def test_vec_normalize_statistics_travel_with_the_checkpoint(tmp_path, learning_curves):
+    straight = learning_curves.run_one(job(tmp_path / "straight", "sac", 300, vec_normalize=True))
+    learning_curves.run_one(job(tmp_path / "resumed", "sac", 200, vec_normalize=True))
+    resumed = learning_curves.run_one(job(tmp_path / "resumed", "sac", 300, vec_normalize=True))
+    assert [row["mean_return"] for row in resumed] == [row["mean_return"] for row in straight]
