@@ -261,10 +261,16 @@ class DACERF(TwinCriticAlgorithm):
             if finite:
                 self.logger.record(f"train/{key}", np.mean(finite))
 
-    def _update_actor(self, replay_data: Any) -> dict[str, float]:
-        """One gradient step on the actor loss ``J_F`` (and on ``α`` when it is learned); returns the values to log."""
+    def actor_loss_terms(self, replay_data: Any) -> dict[str, th.Tensor]:
+        """
+        The two terms of the actor loss ``J_F`` on a replay batch (Algorithm 2), with what they are made of.
+
+        :param replay_data: A batch of the replay buffer
+        :return: ``improvement_term`` (``mean(-Q(s, π(s)) / κ)``) and ``imitation_term``
+            (``mean(λ_f ||v - (a* - a_0)||²)``), both differentiable with respect to the actor, and (detached)
+            ``kappa``, ``lambda_f``, ``flow_error``, ``q_values_star``, ``q_values_buffer`` and the state ``features``
+        """
         observations, actions_buffer = replay_data.observations, replay_data.actions
-        logs: dict[str, float] = {}
         with frozen(self._critic_parameters()):
             # Langevin targets a* from the replay actions (Algorithm 1), gradients w.r.t. actions only
             langevin = compiled_langevin_targets() if self.compile_langevin else langevin_targets
@@ -289,27 +295,46 @@ class DACERF(TwinCriticAlgorithm):
             kappa, lambda_f = actor_loss_weights(
                 self.flow_matching_weights, q_values_pi, q_values_star, q_values_buffer, self.flow_matching_coef
             )
-            improvement_term = (-q_values_pi / kappa).mean()
-            imitation_term = (lambda_f * flow_error).mean()
-            actor_loss = improvement_term + imitation_term
-        logs["actor_loss"] = self._checked(actor_loss, "actor loss", replay_data)
+        return dict(
+            improvement_term=(-q_values_pi / kappa).mean(),
+            imitation_term=(lambda_f * flow_error).mean(),
+            kappa=kappa,
+            lambda_f=lambda_f,
+            flow_error=flow_error.detach(),
+            q_values_star=q_values_star,
+            q_values_buffer=q_values_buffer,
+            features=features.detach(),
+        )
 
+    def actor_gradient_ratio(self, terms: dict[str, th.Tensor]) -> float:
+        """
+        Balance of the actor loss: the norm of the imitation term's gradient on the actor's parameters over that of
+        the improvement term's (1: equal pull; logged as ``train/imitation_to_improvement_grad``).
+
+        :param terms: The output of :meth:`actor_loss_terms` (its graph is kept for a later ``backward``)
+        """
+        parameters = [param for param in self.actor.parameters() if param.requires_grad]
+        norms = []
+        for name in ("imitation_term", "improvement_term"):
+            gradients = th.autograd.grad(terms[name], parameters, retain_graph=True, allow_unused=True)
+            norms.append(math.sqrt(sum(float(g.pow(2).sum()) for g in gradients if g is not None)))
+        return norms[0] / max(norms[1], 1e-12)
+
+    def _update_actor(self, replay_data: Any) -> dict[str, float]:
+        """One gradient step on the actor loss ``J_F`` (and on ``α`` when it is learned); returns the values to log."""
+        terms = self.actor_loss_terms(replay_data)
+        actor_loss = terms["improvement_term"] + terms["imitation_term"]
+        logs = {"actor_loss": self._checked(actor_loss, "actor loss", replay_data)}
         self._n_actor_updates += 1
-        if self._n_actor_updates % 250 == 1:
-            # Balance diagnostic (every 250 actor updates): ratio of the two terms' gradient norms on the actor
-            parameters = [param for param in self.actor.parameters() if param.requires_grad]
-            norms = []
-            for term in (imitation_term, improvement_term):
-                gradients = th.autograd.grad(term, parameters, retain_graph=True, allow_unused=True)
-                norms.append(th.sqrt(sum((g.pow(2).sum() for g in gradients if g is not None), th.tensor(0.0))).item())
-            logs["imitation_to_improvement_grad"] = norms[0] / max(norms[1], 1e-12)
+        if self._n_actor_updates % 250 == 1:  # the balance diagnostic costs two backward passes: not at every update
+            logs["imitation_to_improvement_grad"] = self.actor_gradient_ratio(terms)
 
         self.actor.optimizer.zero_grad()
         actor_loss.backward()
         self.actor.optimizer.step()
 
         # Entropy regulator: estimate H of the noisy policy, then step log α on J(α) = log α (H - H_target)
-        entropy, spread = self._entropy_and_spread(features.detach())
+        entropy, spread = self._entropy_and_spread(terms["features"])
         if self.ent_coef_optimizer is not None:
             ent_coef_gradient = entropy - self.target_entropy  # type: ignore[operator]
             self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, ent_coef_gradient)
@@ -317,12 +342,12 @@ class DACERF(TwinCriticAlgorithm):
             logs["ent_coef_loss"] = self.actor.log_alpha.item() * ent_coef_gradient
 
         logs.update(
-            flow_matching_loss=flow_error.mean().item(),
-            langevin_gain=(q_values_star - q_values_buffer).mean().item(),
-            lambda_f=lambda_f.mean().item(),
-            improvement_scale=kappa.item(),
-            improvement_term=improvement_term.item(),
-            imitation_term=imitation_term.item(),
+            flow_matching_loss=terms["flow_error"].mean().item(),
+            langevin_gain=(terms["q_values_star"] - terms["q_values_buffer"]).mean().item(),
+            lambda_f=terms["lambda_f"].mean().item(),
+            improvement_scale=terms["kappa"].item(),
+            improvement_term=terms["improvement_term"].item(),
+            imitation_term=terms["imitation_term"].item(),
             entropy=entropy,
             action_spread=spread,
         )
