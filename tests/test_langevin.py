@@ -7,6 +7,7 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
 
 from sb3_dacerf.common.langevin import MinQActionGradient, autograd_action_gradient, langevin_targets
+from sb3_dacerf.common.policies import LayerNormCritic
 from sb3_dacerf.common.utils import frozen
 
 
@@ -75,10 +76,13 @@ def test_zero_temperature_is_deterministic_gradient_ascent(temperature):
     assert th.equal(first, second) == (temperature == 0.0)
 
 
-def make_critic(activation_fn: type[nn.Module], observation_dim: int = 5, action_dim: int = 3, n_critics: int = 2):
+def make_critic(
+    activation_fn: type[nn.Module], observation_dim: int = 5, action_dim: int = 3, n_critics: int = 2, layer_norm: bool = False
+):
     observation_space = gym.spaces.Box(-1, 1, (observation_dim,))
     action_space = gym.spaces.Box(-1, 1, (action_dim,))
-    return ContinuousCritic(
+    critic_class = LayerNormCritic if layer_norm else ContinuousCritic
+    return critic_class(
         observation_space,
         action_space,
         net_arch=[32, 16],
@@ -89,12 +93,19 @@ def make_critic(activation_fn: type[nn.Module], observation_dim: int = 5, action
     )
 
 
+@pytest.mark.parametrize("layer_norm", [False, True])
 @pytest.mark.parametrize("n_critics", [1, 2, 3])
 @pytest.mark.parametrize("activation_fn", [nn.ReLU, nn.LeakyReLU, nn.Tanh, nn.ELU])
-def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics):
-    """The written-out gradient (ReLU, LeakyReLU, Tanh) and the autograd fallback (ELU) equal autograd of min_j Q_j."""
+def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics, layer_norm):
+    """The written-out gradient (ReLU, LeakyReLU, Tanh, with or without LayerNorm) and the autograd fallback (ELU)
+    equal autograd of min_j Q_j."""
     th.manual_seed(3)
-    critic = make_critic(activation_fn, n_critics=n_critics)
+    critic = make_critic(activation_fn, n_critics=n_critics, layer_norm=layer_norm)
+    if layer_norm:  # away from LayerNorm's initial γ = 1, β = 0
+        for module in critic.modules():
+            if isinstance(module, nn.LayerNorm):
+                nn.init.normal_(module.weight, 1.0, 0.3)
+                nn.init.normal_(module.bias, 0.0, 0.3)
     observations, actions = th.randn((64, 5)), th.rand((64, 3)) * 2 - 1
     gradient = MinQActionGradient(critic, observations)
     assert gradient.written_out == (activation_fn is not nn.ELU)

@@ -76,15 +76,30 @@ _ACTIVATION_BACKWARDS: dict[type[nn.Module], Callable[[nn.Module, th.Tensor, th.
 }
 
 
+def _layer_norm_forward(norm: nn.LayerNorm, z: th.Tensor) -> tuple[th.Tensor, tuple[th.Tensor, th.Tensor, th.Tensor]]:
+    """``LayerNorm`` with autograd's own kernel, also returning what its backward kernel needs (input, mean, 1/σ)."""
+    y, mean, inv_std = th.native_layer_norm(z, norm.normalized_shape, norm.weight, norm.bias, norm.eps)
+    return y, (z, mean, inv_std)
+
+
+def _layer_norm_backward(norm: nn.LayerNorm, grad: th.Tensor, cache: tuple[th.Tensor, th.Tensor, th.Tensor]) -> th.Tensor:
+    """dQ/dz from dQ/dy of ``y = LayerNorm(z)``, with autograd's own kernel."""
+    z, mean, inv_std = cache
+    return th.ops.aten.native_layer_norm_backward(
+        grad, z, norm.normalized_shape, mean, inv_std, norm.weight, norm.bias, [True, False, False]
+    )[0]
+
+
 class MinQActionGradient:
     """
     ``∇_a min_j Q_j(s, a)`` of SB3 twin critics (``ContinuousCritic``) at fixed states ``s``.
 
     Built once per batch of states: the features, and each critic's first-layer contribution of the state, are
     computed once instead of at every Langevin step. For the critics SB3 builds (MLPs of ``Linear`` layers with
-    ReLU, LeakyReLU or Tanh between them) the gradient is written out (forward pass, then the chain rule through the
-    same weights) without building an autograd graph: the same numbers as autograd, faster, and ``torch.compile``
-    can fuse it. Other critic networks fall back to autograd on the cached features.
+    ReLU, LeakyReLU or Tanh between them, optionally a ``LayerNorm`` after each hidden ``Linear`` as in
+    :class:`sb3_dacerf.common.policies.LayerNormCritic`) the gradient is written out (forward pass, then the chain
+    rule through the same weights) without building an autograd graph: the same numbers as autograd, faster, and
+    ``torch.compile`` can fuse it. Other critic networks fall back to autograd on the cached features.
     Per sample, the gradient is that of the critic with the smallest Q (as autograd routes it through ``min``).
 
     :param critic: Twin critics ``Q_j(s, a) = q_networks[j](concat(features(s), a))``
@@ -95,39 +110,48 @@ class MinQActionGradient:
         with th.no_grad():
             self.features = critic.extract_features(observations, critic.features_extractor)
         self.q_networks = list(critic.q_networks)
-        layers = [_linear_layers(q_net) for q_net in self.q_networks]
+        layers = [_hidden_blocks(q_net) for q_net in self.q_networks]
         self.written_out = all(layer is not None for layer in layers)
         if self.written_out:
             n_features = self.features.shape[1]
             self.networks = []
             with th.no_grad():
-                for linears, activations in layers:  # type: ignore[misc]
-                    first = linears[0]
+                for blocks, output in layers:  # type: ignore[misc]
+                    first = blocks[0][0]
                     # W [s; a] + b = (W_s s + b) + W_a a: the state part is the same at every Langevin step
                     state_part = self.features @ first.weight[:, :n_features].t()
                     if first.bias is not None:
                         state_part += first.bias
-                    self.networks.append((state_part, first.weight[:, n_features:], linears[1:], activations))
+                    self.networks.append((state_part, first.weight[:, n_features:], blocks, output))
 
     def __call__(self, actions: th.Tensor) -> th.Tensor:
         if not self.written_out:
             return autograd_action_gradient(self._min_q)(actions)
         with th.no_grad():
             q_values, gradients = [], []
-            for state_part, action_weight, linears, activations in self.networks:
-                # Forward pass, keeping the pre-activations
-                pre_activation = th.addmm(state_part, actions, action_weight.t())
-                pre_activations = [pre_activation]
-                for linear, activation in zip(linears, activations):
-                    pre_activation = linear(activation(pre_activation))
-                    pre_activations.append(pre_activation)
-                q_values.append(pre_activation)
-                # Backward pass: dQ/dz of each pre-activation, from the output layer to the action input
-                gradient = th.ones_like(pre_activation)
-                backward = zip(reversed(linears), reversed(activations), reversed(pre_activations[:-1]))
-                for linear, activation, pre_activation in backward:
-                    gradient = _ACTIVATION_BACKWARDS[type(activation)](activation, gradient @ linear.weight, pre_activation)
-                gradients.append(gradient @ action_weight)
+            for state_part, action_weight, blocks, output in self.networks:
+                # Forward pass through the hidden blocks (Linear, [LayerNorm], activation), keeping what the
+                # backward pass needs
+                saved = []
+                hidden = None
+                for index, (linear, norm, activation) in enumerate(blocks):
+                    z = th.addmm(state_part, actions, action_weight.t()) if index == 0 else linear(hidden)
+                    norm_cache = None
+                    if norm is not None:
+                        z, norm_cache = _layer_norm_forward(norm, z)
+                    saved.append((z, norm_cache))
+                    hidden = activation(z)
+                q_values.append(output(hidden))
+                # Backward pass: from the output layer down to the action input
+                gradient = output.weight.expand(actions.shape[0], -1)
+                for index in range(len(blocks) - 1, -1, -1):
+                    linear, norm, activation = blocks[index]
+                    z, norm_cache = saved[index]
+                    gradient = _ACTIVATION_BACKWARDS[type(activation)](activation, gradient, z)
+                    if norm is not None:
+                        gradient = _layer_norm_backward(norm, gradient, norm_cache)  # type: ignore[arg-type]
+                    gradient = gradient @ (action_weight if index == 0 else linear.weight)
+                gradients.append(gradient)
             # The gradient of the smallest Q, per sample (the first one on ties, as autograd through th.min)
             if len(gradients) == 2:
                 return th.where(q_values[0] <= q_values[1], gradients[0], gradients[1])
@@ -140,16 +164,30 @@ class MinQActionGradient:
         return th.min(th.cat([q_net(inputs) for q_net in self.q_networks], dim=1), dim=1, keepdim=True).values
 
 
-def _linear_layers(network: nn.Module) -> tuple[list[nn.Linear], list[nn.Module]] | None:
+def _hidden_blocks(network: nn.Module) -> tuple[list[tuple[nn.Linear, nn.LayerNorm | None, nn.Module]], nn.Linear] | None:
     """
-    The linear layers and the activations between them of ``Linear, act, Linear, ..., act, Linear(·, 1)``,
-    or None when ``network`` is anything else.
+    The hidden blocks ``(Linear, LayerNorm or None, activation)`` and the output layer of
+    ``Linear, [LayerNorm], act, ..., Linear, [LayerNorm], act, Linear(·, 1)``, or None when ``network`` is anything else.
     """
-    if not isinstance(network, nn.Sequential) or len(network) % 2 == 0:
+    if not isinstance(network, nn.Sequential):
         return None
-    linears, activations = list(network[::2]), list(network[1::2])
-    if not all(type(layer) is nn.Linear for layer in linears) or linears[-1].out_features != 1:
+    modules = list(network)
+    blocks = []
+    index = 0
+    while index < len(modules) - 1:
+        linear = modules[index]
+        norm = modules[index + 1] if index + 1 < len(modules) and type(modules[index + 1]) is nn.LayerNorm else None
+        position = index + (2 if norm is not None else 1)
+        if position >= len(modules) or type(linear) is not nn.Linear:
+            return None
+        activation = modules[position]
+        if type(activation) not in _ACTIVATION_BACKWARDS:
+            return None
+        if norm is not None and len(norm.normalized_shape) != 1:
+            return None
+        blocks.append((linear, norm, activation))
+        index = position + 1
+    output = modules[-1] if modules else None
+    if not blocks or index != len(modules) - 1 or type(output) is not nn.Linear or output.out_features != 1:
         return None
-    if not all(type(activation) in _ACTIVATION_BACKWARDS for activation in activations):
-        return None
-    return linears, activations
+    return blocks, output
