@@ -46,6 +46,8 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-steps3": ("DACERF", dict(n_sampling_steps=3)),
     "dacerf-tau001": ("DACERF", dict(tau=0.001)),
     "dacerf-noise": ("DACERF", dict(ent_coef=0.0, action_noise_std=0.1)),
+    # version 0.1.0's short-budget settings: SAC's tau and Gaussian action noise 0.1, no regulator, "q_scale" weights
+    "dacerf-tuned": ("DACERF", dict(ent_coef=0.0, flow_matching_weights="q_scale", action_noise_std=0.1)),
     "dacer": ("DACER", {}),
     "sac": ("SAC", {}),
     "td3": ("TD3", {}),
@@ -331,7 +333,12 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Pendulum-v1")
-    parser.add_argument("--variants", nargs="+", default=["dacerf", "sac"], choices=sorted(VARIANTS))
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        default=["dacerf", "sac"],
+        help=f"variants to train (with --report-only: any variant names found under --out): {', '.join(VARIANTS)}",
+    )
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--timesteps", type=int, default=20_000)
     parser.add_argument("--eval-freq", type=int, default=2_000)
@@ -363,6 +370,9 @@ def main() -> None:
         "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
     )
     args = parser.parse_args()
+    unknown = [variant for variant in args.variants if variant not in VARIANTS]
+    if unknown and not args.report_only:
+        parser.error(f"unknown variants {unknown}: choose from {', '.join(VARIANTS)} (or use --report-only for older runs)")
     if args.quick:
         args.seeds, args.timesteps, args.eval_freq, args.eval_episodes = 2, 3_000, 1_000, 3
 
