@@ -10,14 +10,12 @@ import time
 
 import gymnasium as gym
 import matplotlib
-import numpy as np
 import torch as th
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.noise import NormalActionNoise
 
 from sb3_dacerf import DACERF
 
@@ -35,10 +33,8 @@ def main() -> None:
     th.set_num_threads(args.threads)
 
     env = Monitor(gym.make(args.env))
-    # Short-budget settings (README, "Exploration"): SAC's tau instead of the paper's 0.001, and Gaussian action noise
-    action_dim = env.action_space.shape[0]
-    noise = NormalActionNoise(np.zeros(action_dim), 0.1 * np.ones(action_dim))
-    model = DACERF("MlpPolicy", env, tau=0.005, action_noise=noise, seed=args.seed, verbose=0)
+    # The constructor defaults: entropy regulator on, actor loss balanced by the Langevin gain, SAC's tau
+    model = DACERF("MlpPolicy", env, seed=args.seed, verbose=0)
     start = time.perf_counter()
     model.learn(args.timesteps, progress_bar=True)
     train_seconds = time.perf_counter() - start

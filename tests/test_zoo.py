@@ -154,7 +154,8 @@ def test_train_enjoy_record_video_continue(tmp_path):
     for name in ["Pendulum-v1.zip", "best_model.zip", "rl_model_150_steps.zip", "evaluations.npz"]:
         assert (run / name).is_file(), name
     config = yaml.load((run / "Pendulum-v1" / "config.yml").read_text(), Loader=yaml.UnsafeLoader)
-    assert dict(config)["langevin_step_size"] == 0.03
+    # the YAML entry (defaults anchor) merged with the command line's -params, which win
+    assert dict(config)["policy"] == "MlpPolicy" and dict(config)["learning_starts"] == 50
     assert list((tmp_path / "tb" / "Pendulum-v1").glob("*/events.out.tfevents.*"))
 
     run_args = ["--algo", "dacerf", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
