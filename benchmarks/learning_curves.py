@@ -330,6 +330,17 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
     return "\n".join(lines)
 
 
+def collect_runs(folder: Path, variants: list[str]) -> list[dict[str, Any]]:
+    """Rows of every per-run CSV of ``variants`` in ``folder`` (``<variant>-seed<k>.csv``), variant by variant."""
+    return [
+        row
+        for variant in variants
+        for path in sorted(folder.glob(f"{variant}-seed*.csv"))
+        if path.name[len(variant) + len("-seed") : -len(".csv")].isdigit()
+        for row in read_rows(path)
+    ]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Pendulum-v1")
@@ -378,9 +389,9 @@ def main() -> None:
 
     out = Path(args.out or ("benchmarks/results/quick" if args.quick else "benchmarks/results"))
     out.mkdir(parents=True, exist_ok=True)
+    folder = run_file(out, args.env, "x", 0).parent
     if args.report_only:
-        folder = run_file(out, args.env, "x", 0).parent
-        rows = [row for v in args.variants for path in sorted(folder.glob(f"{v}-seed*.csv")) for row in read_rows(path)]
+        rows = collect_runs(folder, args.variants)
         if not rows:
             raise SystemExit(f"No runs of {args.variants} under {folder}: run without --report-only first")
         print(f"\n{args.env}: runs found under {folder}\n")
@@ -406,8 +417,13 @@ def main() -> None:
         for variant in args.variants
     ]
     with mp.get_context("spawn").Pool(args.workers) as pool:
-        rows = [row for result in pool.map(run_one, jobs, chunksize=1) for row in result]
-    print(f"\n{args.env}, {args.timesteps} steps, {args.seeds} seeds, {args.eval_episodes} evaluation episodes\n")
+        pool.map(run_one, jobs, chunksize=1)
+    # The summary covers every run of this environment under --out, not only this command's, so a comparison
+    # run in pieces (one variant or seed range at a time) always ends with a complete <env>.csv and plot.
+    trained = list(dict.fromkeys(args.variants))
+    others = sorted({path.name.rsplit("-seed", 1)[0] for path in folder.glob("*-seed*.csv")} - set(trained))
+    rows = collect_runs(folder, trained + others)
+    print(f"\n{args.env}: every run under {folder} (this command: {args.timesteps} steps, {args.seeds} seeds)\n")
     print(report(rows, args.env, out))
     print(f"\nsaved {out / args.env.replace('/', '_')}.csv and .png")
 
