@@ -390,4 +390,7 @@ if __name__ == "__main__":
         json.dump(episodes, file)
     for episode in episodes:
         record = episode["record"]
-        print(episode["spec"], f"{len(record['rewards'])} steps, return {sum(record['rewards']):.2f}, last flags {record['flags'][-1]}")
+        print(
+            episode["spec"],
+            f"{len(record['rewards'])} steps, return {sum(record['rewards']):.2f}, last flags {record['flags'][-1]}",
+        )
