@@ -1,5 +1,7 @@
 """Tests of the paper's driving environments on highway-env (DACERF-Multilane-v0, DACERF-Intersection-v0)."""
 
+import json
+import os
 import subprocess
 import sys
 
@@ -301,3 +303,94 @@ def test_subprocess_workers_register_the_ids():
     )
     assert vec_env.reset().shape == (1, OBS_SIZE)
     vec_env.close()
+
+
+# Seeded episodes with fixed action sequences, recorded to tests/data/driving_episodes.json: any change of the
+# simulation, observation or reward shows here. Regenerate (only for an intended change of behaviour) with
+#   PYTHONPATH=. python tests/test_driving_envs.py --write-pinned-episodes
+PINNED_EPISODES_PATH = os.path.join(os.path.dirname(__file__), "data", "driving_episodes.json")
+PINNED_EPISODES = [
+    # (env id, density, config overrides, seed, action pattern)
+    ("DACERF-Multilane-v0", "normal", {"duration": 15}, 0, "zero"),
+    ("DACERF-Multilane-v0", "dense", {"duration": 15}, 1, "random"),
+    ("DACERF-Multilane-v0", "sparse", {"duration": 15, "reference_lane": "left"}, 2, "wave"),
+    ("DACERF-Intersection-v0", "normal", {"duration": 20}, 0, "zero"),
+    ("DACERF-Intersection-v0", "dense", {"duration": 20}, 3, "random"),
+    ("DACERF-Intersection-v0", "sparse", {"duration": 20, "routes": ["left"]}, 4, "wave"),
+]
+PINNED_OBS_EVERY = 25
+
+
+def pinned_action(pattern: str, step: int, rng: np.random.Generator) -> np.ndarray:
+    if pattern == "zero":
+        return np.zeros(2, dtype=np.float32)
+    if pattern == "random":
+        return rng.uniform(PAPER_INCREMENT_LOW, PAPER_INCREMENT_HIGH).astype(np.float32)
+    # "wave": slow accelerate / brake and steer left / right
+    return np.array([0.2 * np.cos(step / 7), 0.003 * np.sin(step / 5)], dtype=np.float32)
+
+
+def short_floats(obs: np.ndarray) -> list[float]:
+    """float32 values as the shortest decimals that read back to them (a smaller file than float64 digits)."""
+    return [float(str(value)) for value in obs.astype(np.float32)]
+
+
+def record_episode(env_id: str, density: str, config: dict, seed: int, pattern: str) -> dict:
+    """One seeded episode: rewards and flags of every step, a weighted checksum of every observation, some observations."""
+    env = gym.make(env_id, density=density, config=config)
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    weights = np.linspace(1.0, 2.0, obs.size)
+    record = {"rewards": [], "flags": [], "vehicles": [], "obs_checksums": [float(obs.astype(np.float64) @ weights)]}
+    record["observations"] = {"0": short_floats(obs)}
+    terms = dict.fromkeys(REWARD_TERMS, 0.0)
+    step, done = 0, False
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(pinned_action(pattern, step, rng))
+        step += 1
+        done = terminated or truncated
+        record["rewards"].append(float(reward))
+        record["flags"].append([bool(terminated), bool(truncated), info["collision"], info["off_road"], info["is_success"]])
+        record["vehicles"].append(len(env.unwrapped.road.vehicles))
+        record["obs_checksums"].append(float(obs.astype(np.float64) @ weights))
+        if step % PINNED_OBS_EVERY == 0 or done:
+            record["observations"][str(step)] = short_floats(obs)
+        for name, value in info["reward_terms"].items():
+            terms[name] += value
+    record["reward_terms"] = terms
+    return record
+
+
+def test_pinned_episodes_are_unchanged():
+    with open(PINNED_EPISODES_PATH) as file:
+        pinned = json.load(file)
+    assert len(pinned) == len(PINNED_EPISODES)
+    for spec, expected in zip(PINNED_EPISODES, pinned):
+        assert expected["spec"] == json.loads(json.dumps(list(spec))), "pinned episode list changed: regenerate the file"
+        actual = record_episode(*spec)
+        assert actual["flags"] == expected["record"]["flags"], spec
+        assert actual["vehicles"] == expected["record"]["vehicles"], spec
+        np.testing.assert_allclose(actual["rewards"], expected["record"]["rewards"], rtol=1e-9, atol=1e-9, err_msg=str(spec))
+        np.testing.assert_allclose(
+            actual["obs_checksums"], expected["record"]["obs_checksums"], rtol=1e-7, atol=1e-6, err_msg=str(spec)
+        )
+        assert actual["observations"].keys() == expected["record"]["observations"].keys()
+        for step, obs in expected["record"]["observations"].items():
+            np.testing.assert_allclose(actual["observations"][step], obs, rtol=1e-6, atol=1e-6, err_msg=f"{spec} step {step}")
+        for name, value in expected["record"]["reward_terms"].items():
+            assert actual["reward_terms"][name] == pytest.approx(value, rel=1e-9, abs=1e-9), (spec, name)
+
+
+if __name__ == "__main__":
+    if sys.argv[1:] != ["--write-pinned-episodes"]:
+        sys.exit("usage: PYTHONPATH=. python tests/test_driving_envs.py --write-pinned-episodes")
+    episodes = [{"spec": list(spec), "record": record_episode(*spec)} for spec in PINNED_EPISODES]
+    os.makedirs(os.path.dirname(PINNED_EPISODES_PATH), exist_ok=True)
+    with open(PINNED_EPISODES_PATH, "w") as file:
+        json.dump(episodes, file)
+    for episode in episodes:
+        record = episode["record"]
+        print(
+            episode["spec"],
+            f"{len(record['rewards'])} steps, return {sum(record['rewards']):.2f}, last flags {record['flags'][-1]}",
+        )
