@@ -50,6 +50,10 @@ def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[st
     hyperparams = sampled_params.copy()
     hyperparams["batch_size"] = 2 ** hyperparams.pop("batch_size_pow")
     hyperparams["policy_kwargs"] = {**(policy_kwargs or {}), "net_arch": NET_ARCH[hyperparams.pop("net_arch")]}
+    if "critic_layer_norm" in hyperparams:
+        hyperparams["policy_kwargs"]["critic_layer_norm"] = hyperparams.pop("critic_layer_norm")
+    if hyperparams.get("ent_coef") == "off":  # Optuna's categorical values: "auto" (learned α) or "off" (paper)
+        hyperparams["ent_coef"] = 0.0
     return hyperparams
 
 
@@ -64,7 +68,7 @@ def sample_dacerf_params(
     Sampler for DACERF hyper-parameters (RL Zoo's ``HYPERPARAMS_SAMPLER`` signature), centred on the paper's values.
 
     :param trial: Optuna trial
-    :param n_actions: action dimension (unused: DACERF explores through Langevin noise)
+    :param n_actions: action dimension (unused: ``target_entropy="auto"`` already scales with it)
     :param n_envs: number of environments (unused)
     :param additional_args: RL Zoo's extra arguments (unused: no HER replay buffer for DACERF)
     :param policy_kwargs: ``policy_kwargs`` of the YAML entry, kept apart from the sampled ``net_arch``
@@ -81,6 +85,11 @@ def sample_dacerf_params(
         "langevin_temperature": trial.suggest_float("langevin_temperature", 0.001, 0.1, log=True),
         "n_sampling_steps": trial.suggest_categorical("n_sampling_steps", [1, 2, 4, 8]),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCH)),
+        # The entropy regulator (learned α, or the paper's mechanism without added noise), the actor-loss
+        # weighting and LayerNorm critics: the options benchmarks/learning.md measures
+        "ent_coef": trial.suggest_categorical("ent_coef", ["auto", "off"]),
+        "flow_matching_weights": trial.suggest_categorical("flow_matching_weights", ["gain", "q_scale", "td3bc", "flowrl"]),
+        "critic_layer_norm": trial.suggest_categorical("critic_layer_norm", [False, True]),
     }
     trial.set_user_attr("batch_size", 2 ** sampled["batch_size_pow"])
     return convert_dacerf_params(sampled, policy_kwargs)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import pytest
+import torch as th
 import yaml
 
 optuna = pytest.importorskip("optuna")
@@ -130,14 +131,21 @@ def test_yaml_entries():
 
 def test_sampler_builds_dacerf():
     study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
-    for _ in range(3):
+    seen = set()
+    for _ in range(8):
         trial = study.ask()
         hyperparams = sample_dacerf_params(trial, 1, 1, {}, policy_kwargs={"optimizer_class": "RAD"})
         assert hyperparams["policy_kwargs"]["optimizer_class"] == "RAD"
         # --trial-id reloads a study's parameters through the converter
         assert convert_dacerf_params(trial.params, {"optimizer_class": "RAD"}) == hyperparams
-        DACERF("MlpPolicy", "Pendulum-v1", **hyperparams)
+        model = DACERF("MlpPolicy", "Pendulum-v1", **hyperparams)
+        layer_norm = hyperparams["policy_kwargs"]["critic_layer_norm"]
+        assert any(isinstance(m, th.nn.LayerNorm) for m in model.critic.modules()) == layer_norm
+        assert model.ent_coef == hyperparams["ent_coef"] and hyperparams["ent_coef"] in ("auto", 0.0)
+        seen |= {("ent_coef", hyperparams["ent_coef"]), ("layer_norm", layer_norm)}
         study.tell(trial, 0.0)
+    # both values of each switch were drawn: the sampler explores the options benchmarks/learning.md measures
+    assert seen == {("ent_coef", "auto"), ("ent_coef", 0.0), ("layer_norm", False), ("layer_norm", True)}
 
 
 def test_train_enjoy_record_video_continue(tmp_path):
