@@ -228,4 +228,7 @@ def test_optimize_two_workers_share_one_study(tmp_path):
         "langevin_temperature",
         "n_sampling_steps",
         "net_arch",
+        "ent_coef",
+        "flow_matching_weights",
+        "critic_layer_norm",
     }
