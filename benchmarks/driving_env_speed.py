@@ -21,7 +21,7 @@ timing ``env.step`` only (resets are not timed):
 
 Usage::
 
-    python benchmarks/driving_env_speed.py [--steps 100] [--rounds 15] [--density normal]
+    python benchmarks/driving_env_speed.py [--steps 100] [--rounds 15] [--density normal] [--quick]
 
 On a shared machine the load average (printed) moves all numbers; the ratios, measured interleaved, move less.
 """
@@ -43,8 +43,19 @@ from sb3_dacerf.envs.driving.intersection import IntersectionEnv
 from sb3_dacerf.envs.driving.multilane import MultilaneEnv
 
 
-class StockLayerMultilaneEnv(MultilaneEnv):
+class StockLayerMixin:
+    """highway-env's own step loop and reset over our scenario: no scene, observation or reward of ours."""
+
+    def _reset(self) -> None:
+        # Our scenario's road and vehicles (through highway-env's _reset), without our perception of the scene.
+        self._stock_base._reset(self)
+        self.vehicle.MIN_SPEED = 0.0
+
+
+class StockLayerMultilaneEnv(StockLayerMixin, MultilaneEnv):
     """Our multi-lane traffic under highway-env's own observation, action and reward."""
+
+    _stock_base = HighwayEnv
 
     @classmethod
     def default_config(cls) -> dict:
@@ -52,14 +63,17 @@ class StockLayerMultilaneEnv(MultilaneEnv):
         return {**stock, **super().default_config(), "action": {"type": "ContinuousAction"}, "offroad_terminal": True}
 
     define_spaces = AbstractEnv.define_spaces
+    step = AbstractEnv.step
     _reward = HighwayEnv._reward
     _rewards = HighwayEnv._rewards
     _is_terminated = HighwayEnv._is_terminated
     _info = AbstractEnv._info
 
 
-class StockLayerIntersectionEnv(IntersectionEnv):
+class StockLayerIntersectionEnv(StockLayerMixin, IntersectionEnv):
     """Our intersection traffic under highway-env's own observation, action and reward."""
+
+    _stock_base = HighwayIntersectionEnv
 
     @classmethod
     def default_config(cls) -> dict:
@@ -67,6 +81,7 @@ class StockLayerIntersectionEnv(IntersectionEnv):
         return {**stock, **super().default_config(), "action": {"type": "ContinuousAction"}, "offroad_terminal": True}
 
     define_spaces = AbstractEnv.define_spaces
+    step = HighwayIntersectionEnv.step  # highway-env's step, then its traffic update (clear, spawn) as ours does
     _reward = HighwayIntersectionEnv._reward
     _rewards = HighwayIntersectionEnv._rewards
     _is_terminated = HighwayIntersectionEnv._is_terminated
@@ -123,7 +138,10 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100, help="steps per environment and round")
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--density", default="normal", choices=["sparse", "normal", "dense"])
+    parser.add_argument("--quick", action="store_true", help="a short check: 50 steps x 4 rounds")
     args = parser.parse_args()
+    if args.quick:
+        args.steps, args.rounds = 50, 4
 
     stock_config = {"action": {"type": "ContinuousAction"}, "policy_frequency": 10}
     scenarios = {

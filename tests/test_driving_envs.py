@@ -12,7 +12,13 @@ import pytest
 pytest.importorskip("highway_env")
 
 import sb3_dacerf  # noqa: E402, F401  (registers the ids)
-from sb3_dacerf.envs.driving.common import EGO_FEATURES, REWARD_TERMS, VEHICLE_FEATURES, WAYPOINT_FEATURES  # noqa: E402
+from sb3_dacerf.envs.driving.common import (  # noqa: E402
+    EGO_FEATURES,
+    REWARD_TERMS,
+    VEHICLE_FEATURES,
+    WAYPOINT_FEATURES,
+    observe_scene,
+)
 
 ENV_IDS = ["DACERF-Multilane-v0", "DACERF-Intersection-v0"]
 PAPER_INCREMENT_LOW, PAPER_INCREMENT_HIGH = np.array([-0.4, -0.025]), np.array([0.25, 0.025])
@@ -278,6 +284,42 @@ def test_check_env(env_id):
 
     gym_check_env(make(env_id).unwrapped, skip_render_check=True)
     sb3_check_env(make(env_id), warn=True)
+
+
+def test_scene_is_perceived_once_per_step_and_observe_has_no_side_effect(monkeypatch):
+    from sb3_dacerf.envs.driving.common import abstract
+
+    env = make("DACERF-Intersection-v0")
+    env.reset(seed=0)
+    unwrapped = env.unwrapped
+    calls = []
+    monkeypatch.setattr(abstract, "observe_scene", lambda e: calls.append(1) or observe_scene(e))
+    obs, reward, *_, info = env.step(np.zeros(2, dtype=np.float32))
+    assert len(calls) == 1
+    scene = unwrapped.scene
+    # observe() of the current state gives the step's observation and leaves the step's scene in place
+    np.testing.assert_array_equal(unwrapped.observation_type.observe(), obs)
+    assert unwrapped.scene is scene
+    assert unwrapped._reward(None) == pytest.approx(reward)
+
+
+@pytest.mark.parametrize("video_driver", [None, "dummy"])
+def test_import_leaves_the_process_environment_unchanged(video_driver):
+    # Headless: no display and no SDL_VIDEODRIVER, or SDL's "dummy" driver; offscreen frames are drawn in both cases.
+    code = (
+        "import json, os; before = dict(os.environ); import gymnasium as gym, sb3_dacerf; "
+        "import sb3_dacerf.envs.driving.multilane, sb3_dacerf.envs.driving.intersection; "
+        "env = gym.make('DACERF-Multilane-v0', render_mode='rgb_array', config={'duration': 1}); env.reset(seed=0); "
+        "frame = env.render(); assert frame.std() > 0; "
+        "changed = {k for k in set(before) | set(os.environ) if before.get(k) != os.environ.get(k)}; "
+        "print(json.dumps(sorted(changed)))"
+    )
+    environment = {k: v for k, v in os.environ.items() if k not in ("SDL_VIDEODRIVER", "DISPLAY", "WAYLAND_DISPLAY")}
+    if video_driver:
+        environment["SDL_VIDEODRIVER"] = video_driver
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=environment).stdout
+    # highway-env's own import sets PYGAME_HIDE_SUPPORT_PROMPT; ours sets nothing
+    assert set(json.loads(out)) <= {"PYGAME_HIDE_SUPPORT_PROMPT"}, out
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

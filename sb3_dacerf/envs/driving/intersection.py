@@ -168,6 +168,13 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             vehicle.DISTANCE_WANTED, vehicle.COMFORT_ACC_MAX, vehicle.COMFORT_ACC_MIN = 7.0, 6.0, -3.0
         return vehicle
 
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """The paper's step, then highway-env's intersection traffic update: remove the vehicles that left, spawn new ones."""
+        result = super().step(action)
+        self._clear_vehicles()
+        self._spawn_vehicle(spawn_probability=self.config["spawn_probability"])
+        return result
+
     def _has_exited(self) -> bool:
         return self.has_arrived(self.vehicle, exit_distance=self.EXIT_DISTANCE)
 

@@ -1,0 +1,255 @@
+"""
+The paper's task layer over a highway-env environment (:class:`PaperDrivingMixin`): configuration, the step loop
+(simulate, perceive once, observe, reward, terminate, info), termination and rendering.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+
+import numpy as np
+from highway_env.envs.common.graphics import EnvViewer
+
+from sb3_dacerf.envs.driving.common.action import IncrementalAction
+from sb3_dacerf.envs.driving.common.observation import EgoFrameObservation, Scene, observe_scene
+from sb3_dacerf.envs.driving.common.reference import ReferencePath
+from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, reward_terms
+
+DENSITIES = ("sparse", "normal", "dense")
+
+# highway-env keys that our action / observation / reward replace: dropped so setting them is an error, not a no-op.
+_REPLACED_STOCK_KEYS = (
+    "observation",
+    "action",
+    "collision_reward",
+    "right_lane_reward",
+    "high_speed_reward",
+    "lane_change_reward",
+    "arrived_reward",
+    "reward_speed_range",
+    "normalize_reward",
+    "offroad_terminal",
+    "vehicles_density",
+    "ego_spacing",
+    "initial_lane_id",
+    "controlled_vehicles",
+    "destination",
+)
+
+
+@contextlib.contextmanager
+def _headless_video_driver():
+    """
+    Let pygame initialise its display on a machine without one, for offscreen rendering only.
+
+    Without ``DISPLAY`` / ``WAYLAND_DISPLAY`` and without ``SDL_VIDEODRIVER``, SDL finds no video device; its
+    ``offscreen`` driver needs none. The variable is set while highway-env's viewer initialises pygame and restored
+    afterwards, so importing or using the env leaves the process environment as it was.
+    """
+    headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") or "SDL_VIDEODRIVER" in os.environ)
+    if headless:
+        os.environ["SDL_VIDEODRIVER"] = "offscreen"
+    try:
+        yield
+    finally:
+        if headless:
+            os.environ.pop("SDL_VIDEODRIVER", None)
+
+
+class PaperDrivingMixin:
+    """
+    The paper's task layer over a highway-env environment: put it first in the bases of a subclass of a
+    highway-env environment, which must build ``self.reference`` (a :class:`ReferencePath`) and
+    ``self.reference_speed`` when it creates the ego vehicle, and implement ``_road_clearance`` and
+    ``_is_success``.
+
+    ``step()`` simulates, then computes the :class:`Scene` once (``self.scene``), from which the observation, the
+    reward terms, the termination and the info are all read.
+
+    :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
+    :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
+    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
+    """
+
+    DENSITY_CONFIGS: dict[str, dict] = {}
+    """Config overrides of each traffic density."""
+
+    reference: ReferencePath
+    reference_speed: float
+
+    def __init__(self, config: dict | None = None, render_mode: str | None = None, density: str = "normal") -> None:
+        if density not in DENSITIES:
+            raise ValueError(f"Unknown density {density!r}: expected one of {', '.join(map(repr, DENSITIES))}")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"Unknown render_mode {render_mode!r}: expected None or one of {self.metadata['render_modes']}")
+        if config is not None and not isinstance(config, dict):
+            raise TypeError(f"config must be a dict of overrides, got {type(config).__name__}")
+        self.density = density
+        self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
+        self.scene: Scene | None = None
+        super().__init__({**self.DENSITY_CONFIGS[density], **(config or {})}, render_mode=render_mode)
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        for key in _REPLACED_STOCK_KEYS:
+            config.pop(key, None)
+        config.update(
+            {
+                "simulation_frequency": 10,  # [Hz] one physics step per action: the paper's Δt = 0.1 s
+                "policy_frequency": 10,  # [Hz]
+                "duration": 30,  # [s]
+                "perception_distance": 80.0,  # [m]
+                "surrounding_vehicles": 8,  # M
+                "reference_waypoints": 10,  # W
+                "reference_waypoint_interval": 0.5,  # [s] of travel at the target speed between waypoints
+                "position_scale": 50.0,  # [m] observation divisor of positions
+                "speed_scale": 30.0,  # [m/s] observation divisor of speeds
+                "acceleration_increment_range": [-0.4, 0.25],  # [m/s²] per step
+                "steering_increment_range": [-0.025, 0.025],  # [rad] per step
+                "acceleration_range": [-0.8, 0.8],  # [m/s²]
+                "steering_range": [-0.571, 0.571],  # [rad]
+                "huber_delta": 1.0,
+                "rho_lat": 1.5,
+                "rho_long": 3.0,
+                "rho_heading": 0.3,
+                "rho_acc": 1.0,
+                "rho_steer": 0.1,
+                "rho_yaw": 0.7,
+                "rho_jerk": 0.5,
+                "rho_steer_rate": 0.005,
+                "rho_step": 1.0,
+                "rho_front": 10.0,
+                "rho_side": 0.0,
+                "rho_space": 2.0,
+                "rho_rear": 0.0,
+                "rho_boundary": 20.0,
+                "safe_time_headway": 1.0,  # Δt_safe [s]
+                "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
+                "boundary_threshold": 0.5,  # d_thresh [m]
+                "collision_penalty": 200.0,
+            }
+        )
+        return config
+
+    def configure(self, config: dict | None) -> None:
+        unknown = sorted(set(config or {}) - set(self.default_config()))
+        if unknown:
+            raise ValueError(
+                f"Unknown config key(s) {unknown} for {type(self).__name__}; valid keys: {sorted(self.default_config())}"
+            )
+        super().configure(config)
+
+    def define_spaces(self) -> None:
+        config = self.config
+        self.observation_type = EgoFrameObservation(self)
+        self.action_type = IncrementalAction(
+            self,
+            acceleration_increment_range=config["acceleration_increment_range"],
+            steering_increment_range=config["steering_increment_range"],
+            acceleration_range=config["acceleration_range"],
+            steering_range=config["steering_range"],
+        )
+        # highway-env rebuilds the spaces on every reset; keeping ours keeps any seed set on them.
+        if self.observation_space is None or self.observation_space.shape != self.observation_type.space().shape:
+            self.observation_space = self.observation_type.space()
+        if self.action_space is None or self.action_space != self.action_type.space():
+            self.action_space = self.action_type.space()
+
+    def _reset(self) -> None:
+        self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
+        super()._reset()
+        # The ego stops instead of reversing: the paper's task has no reverse gear.
+        self.vehicle.MIN_SPEED = 0.0
+        self.scene = observe_scene(self)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """
+        Apply ``[Δa_x, Δδ]``, simulate one policy period, then perceive the scene once and derive from it the
+        observation, reward, termination and info.
+        """
+        if self.road is None or self.vehicle is None:
+            raise NotImplementedError("The road and vehicle must be initialized in the environment implementation")
+        self.time += 1 / self.config["policy_frequency"]
+        self._simulate(action)
+        self.scene = observe_scene(self)
+        obs = self.observation_type.observe(self.scene)
+        self._reward_terms = self._rewards(action)
+        reward = float(sum(self._reward_terms.values()))
+        terminated = self._is_terminated()
+        truncated = self._is_truncated()
+        info = self._info(obs, action)
+        if self.render_mode == "human":
+            self.render()
+        return obs, reward, terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        if self.viewer is None and self.render_mode is not None:
+            with _headless_video_driver():
+                self.viewer = EnvViewer(self)
+            if self.config["offscreen_rendering"]:
+                # highway-env's viewer draws nothing under SDL's "dummy" driver; offscreen frames need no display.
+                self.viewer.enabled = True
+        return super().render()
+
+    def _is_truncated(self) -> bool:
+        # highway-env accumulates time in steps of 1 / policy_frequency: compare with a tolerance.
+        return self.time >= self.config["duration"] - 1e-6
+
+    def _start_speed(self) -> float:
+        """
+        Initial ego speed [m/s]: ``self.reference_speed`` ± 0.5 m/s (normal noise), never negative.
+
+        Both scenarios start the ego near its target speed: started far from it (the multilane once drew it like
+        the traffic's, up to 10 m/s off, with ±0.8 m/s² to close the gap), the speed-tracking cost alone averaged
+        ~250 per episode even for an ideal driver, and leaving the road (-200) was the better return in ~30% of them.
+        """
+        return max(self.reference_speed + self.np_random.normal(0.0, 0.5), 0.0)
+
+    def _road_clearance(self, position: np.ndarray) -> float:
+        """Distance [m] from a position to the nearest road edge, negative off the road."""
+        raise NotImplementedError
+
+    def _is_success(self) -> bool:
+        """Whether the episode's task is achieved (route completed / destination reached)."""
+        raise NotImplementedError
+
+    def _severe_penalty(self) -> float:
+        """The penalty of a collision or of leaving the road at the current step (positive)."""
+        return float(self.config["collision_penalty"])
+
+    def _rewards(self, action: np.ndarray | None = None) -> dict[str, float]:
+        """
+        The paper's signed reward and cost terms of the current scene (see :mod:`.reward`).
+
+        :param action: unused: the increments that count are those applied after clipping
+        :return: a dict of {term: signed contribution to the reward}
+        """
+        return reward_terms(
+            self.config,
+            self.scene,
+            self.vehicle,
+            self.action_type.applied_increment,
+            self.reference_speed,
+            self._severe_penalty(),
+        )
+
+    def _reward(self, action: np.ndarray) -> float:
+        return float(sum(self._rewards(action).values()))
+
+    def _is_terminated(self) -> bool:
+        """Collisions and leaving the road end the episode."""
+        return bool(self.vehicle.crashed or self.scene.road_clearance < 0)
+
+    def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
+        crashed, off_road = bool(self.vehicle.crashed), bool(self.scene.road_clearance < 0)
+        return {
+            "speed": float(self.vehicle.speed),
+            "reference_speed": float(self.reference_speed),
+            "crashed": crashed,
+            "collision": crashed,
+            "off_road": off_road,
+            "is_success": bool(self._is_success() and not (crashed or off_road)),
+            "reward_terms": dict(self._reward_terms),
+        }

@@ -1,0 +1,83 @@
+"""
+The paper's incremental action on highway-env's kinematic bicycle model.
+
+``[Δa_x, Δδ]`` with ``Δa_x ∈ [-0.4, 0.25]`` m/s² and ``Δδ ∈ [-0.025, 0.025]`` rad per policy step (0.1 s, i.e. jerk in
+[-4, 2.5] m/s³ and steering rate within ±0.25 rad/s). The increments are integrated into the commanded longitudinal
+acceleration ``a_x ∈ [-0.8, 0.8]`` m/s² and front-wheel steering angle ``δ ∈ [-0.571, 0.571]`` rad, which are exactly
+the ``acceleration`` (m/s²) and ``steering`` (front-wheel angle, rad) inputs of highway-env's kinematic bicycle model
+(``highway_env.vehicle.kinematics.Vehicle``). Both start at 0 on ``reset()``. The ego cannot reverse.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from gymnasium import spaces
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.envs.common.action import ContinuousAction
+
+
+class IncrementalAction(ContinuousAction):
+    """
+    Continuous action ``[Δa_x, Δδ]``: increments of the commanded acceleration [m/s²] and front-wheel
+    steering angle [rad] of highway-env's kinematic bicycle model, integrated and clipped every policy step.
+
+    The action space is a ``Box`` with the raw increment bounds (SB3 rescales Box bounds itself).
+
+    :param env: the environment
+    :param acceleration_increment_range: bounds of Δa_x per policy step [m/s²]
+    :param steering_increment_range: bounds of Δδ per policy step [rad]
+    :param acceleration_range: bounds of the integrated a_x [m/s²]
+    :param steering_range: bounds of the integrated δ [rad]
+    """
+
+    def __init__(
+        self,
+        env: AbstractEnv,
+        acceleration_increment_range: tuple[float, float] = (-0.4, 0.25),
+        steering_increment_range: tuple[float, float] = (-0.025, 0.025),
+        acceleration_range: tuple[float, float] = (-0.8, 0.8),
+        steering_range: tuple[float, float] = (-0.571, 0.571),
+        **kwargs,
+    ) -> None:
+        super().__init__(env, acceleration_range=acceleration_range, steering_range=steering_range)
+        self.increment_low = np.array([acceleration_increment_range[0], steering_increment_range[0]])
+        self.increment_high = np.array([acceleration_increment_range[1], steering_increment_range[1]])
+        self.command_low = np.array([acceleration_range[0], steering_range[0]])
+        self.command_high = np.array([acceleration_range[1], steering_range[1]])
+        self.command = np.zeros(2)  # integrated [a_x, δ]
+        self.applied_increment = np.zeros(2)  # increment actually applied after clipping, for the comfort terms
+
+    def space(self) -> spaces.Box:
+        return spaces.Box(self.increment_low.astype(np.float32), self.increment_high.astype(np.float32), dtype=np.float32)
+
+    def check(self, action: np.ndarray) -> np.ndarray:
+        """
+        Check that an action is one finite ``[Δa_x, Δδ]`` pair (values beyond the bounds are allowed: ``act`` clips them).
+
+        :param action: the action given to ``step()``
+        :return: the action as a float64 array of shape (2,)
+        :raises ValueError: wrong shape, non-numeric or non-finite values
+        """
+        try:
+            array = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"The action must be two numbers [Δa_x, Δδ], got {action!r}") from error
+        if array.shape != (2,):
+            raise ValueError(
+                f"The action must have shape (2,) ([Δa_x, Δδ] of one env), got shape {array.shape}: "
+                "step a single env with one action (a VecEnv splits a batch of actions per env)"
+            )
+        if not np.isfinite(array).all():
+            raise ValueError(
+                f"The action contains NaN or infinite values: {array.tolist()}. The policy's output is not a number "
+                "(a diverged training, or an observation with NaN fed to it): check its inputs and losses"
+            )
+        return array
+
+    def act(self, action: np.ndarray) -> None:
+        increment = np.clip(np.asarray(action, dtype=np.float64), self.increment_low, self.increment_high)
+        command = np.clip(self.command + increment, self.command_low, self.command_high)
+        self.applied_increment = command - self.command
+        self.command = command
+        self.controlled_vehicle.act({"acceleration": float(command[0]), "steering": float(command[1])})
+        self.last_action = action

@@ -1,0 +1,139 @@
+"""
+What the ego perceives (:class:`Scene`, computed once per step) and the paper's flat ego-frame observation of it.
+
+Observation (flat ``float32`` vector, ego frame: x along the ego heading, y along highway-env's lateral axis, i.e. to
+the driver's right on the rendered image, where world y points down)
+
+- ego, 5 values: ``[v_x / speed_scale, v_y / speed_scale, r, a_x, δ]``; body-frame velocity of the bicycle model (m/s),
+  yaw rate ``r`` (rad/s), commanded ``a_x`` (m/s²) and ``δ`` (rad) unscaled;
+- reference, 4 × W values (W = ``reference_waypoints``, default 10): ``[x / position_scale, y / position_scale, cos φ,
+  sin φ]`` for waypoints at the ego's projection on the reference path and then every ``reference_waypoint_interval``
+  (0.5 s) of travel at the target speed, so the spacing encodes the target speed; φ is the path heading relative to
+  the ego heading;
+- surrounding vehicles, 6 × M values (M = ``surrounding_vehicles``, default 8), nearest first, within
+  ``perception_distance``: ``[x / position_scale, y / position_scale, cos φ, sin φ, v / speed_scale, mask]``, relative
+  position of the vehicle centre, relative heading, absolute speed, mask 1; padding rows are all zeros (mask 0).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from gymnasium import spaces
+from highway_env import utils
+from highway_env.envs.common.observation import ObservationType
+
+if TYPE_CHECKING:
+    from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
+
+EGO_FEATURES = 5
+WAYPOINT_FEATURES = 4
+VEHICLE_FEATURES = 6
+
+
+@dataclass
+class Scene:
+    """What the ego perceives at one step, in SI units and in the ego frame."""
+
+    ego: np.ndarray
+    """[v_x, v_y, r, a_x, δ]"""
+    waypoints: np.ndarray
+    """(W, 4) reference waypoints [x, y, cos φ, sin φ]"""
+    vehicles: np.ndarray
+    """(K, 7) vehicles within perception distance, nearest first: [x, y, cos φ, sin φ, v, length, width]"""
+    lateral_error: float
+    heading_error: float
+    reference_curvature: float
+    road_clearance: float
+    """Distance from the ego centre to the road edge [m], negative off the road."""
+
+
+def observe_scene(env: PaperDrivingMixin) -> Scene:
+    """
+    Compute what the ego perceives in the env's current state (reads the env, changes nothing).
+
+    :param env: a paper driving env after ``reset()``
+    :return: the scene, for the observation, the reward, the termination and the info
+    """
+    config = env.config
+    ego = env.vehicle
+    beta = math.atan(0.5 * math.tan(ego.action["steering"]))
+    ego_state = np.array(
+        [
+            ego.speed * math.cos(beta),
+            ego.speed * math.sin(beta),
+            ego.speed * math.sin(beta) / (ego.LENGTH / 2),  # heading rate of the bicycle model
+            *env.action_type.command,
+        ]
+    )
+    cos_h, sin_h = math.cos(ego.heading), math.sin(ego.heading)
+    to_ego_frame_t = np.array([[cos_h, -sin_h], [sin_h, cos_h]])
+
+    s, lateral = env.reference.project(ego.position)
+    step = env.reference_speed * config["reference_waypoint_interval"]
+    points, headings, curvatures = env.reference.at(s + step * np.arange(config["reference_waypoints"]))
+    relative_headings = headings - ego.heading
+    waypoints = np.empty((len(points), WAYPOINT_FEATURES))
+    waypoints[:, :2] = (points - ego.position) @ to_ego_frame_t
+    waypoints[:, 2], waypoints[:, 3] = np.cos(relative_headings), np.sin(relative_headings)
+
+    vehicles = np.zeros((0, 7))
+    others = [v for v in env.road.vehicles if v is not ego]
+    if others:
+        # One array of [x, y, heading, speed, length, width] per vehicle, then vectorised.
+        data = np.array([(*v.position, v.heading, v.speed, v.LENGTH, v.WIDTH) for v in others])
+        data[:, :2] -= ego.position
+        distances = np.hypot(data[:, 0], data[:, 1])
+        visible = np.flatnonzero(distances < config["perception_distance"])
+        data = data[visible[np.argsort(distances[visible], kind="stable")]]
+        relative = data[:, 2] - ego.heading
+        vehicles = np.empty((len(data), 7))
+        vehicles[:, :2] = data[:, :2] @ to_ego_frame_t
+        vehicles[:, 2], vehicles[:, 3], vehicles[:, 4:] = np.cos(relative), np.sin(relative), data[:, 3:]
+    return Scene(
+        ego=ego_state,
+        waypoints=waypoints,
+        vehicles=vehicles,
+        lateral_error=lateral,
+        heading_error=float(utils.wrap_to_pi(ego.heading - float(headings[0]))),
+        reference_curvature=float(curvatures[0]),
+        road_clearance=env._road_clearance(ego.position),
+    )
+
+
+class EgoFrameObservation(ObservationType):
+    """The paper's flat ego-frame observation; see the module docstring for layout and scaling."""
+
+    def __init__(self, env: PaperDrivingMixin, **kwargs) -> None:
+        super().__init__(env)
+        config = env.config
+        self.n_waypoints, self.n_vehicles = config["reference_waypoints"], config["surrounding_vehicles"]
+        position, speed = 1.0 / config["position_scale"], 1.0 / config["speed_scale"]
+        # One multiplier per observation entry: scaling is then a single vector product.
+        self.scale = np.concatenate(
+            [
+                [speed, speed, 1.0, 1.0, 1.0],
+                np.tile([position, position, 1.0, 1.0], self.n_waypoints),
+                np.tile([position, position, 1.0, 1.0, speed, 1.0], self.n_vehicles),
+            ]
+        )
+
+    def space(self) -> spaces.Box:
+        return spaces.Box(-np.inf, np.inf, shape=self.scale.shape, dtype=np.float32)
+
+    def observe(self, scene: Scene | None = None) -> np.ndarray:
+        """
+        :param scene: the scene to observe (``step()`` passes the one it computed); by default the env's current state
+        :return: the flat observation
+        """
+        if scene is None:
+            scene = observe_scene(self.env)
+        vehicles = np.zeros((self.n_vehicles, VEHICLE_FEATURES))
+        nearest = scene.vehicles[: self.n_vehicles, :5]
+        vehicles[: len(nearest), :5] = nearest
+        vehicles[: len(nearest), 5] = 1.0
+        obs = np.concatenate([scene.ego, scene.waypoints.ravel(), vehicles.ravel()]) * self.scale
+        return obs.astype(np.float32)

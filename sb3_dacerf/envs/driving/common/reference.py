@@ -1,0 +1,90 @@
+"""Reference path of the ego: a polyline sampled from highway-env lanes, with arc-length lookups."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from highway_env.road.lane import AbstractLane
+
+
+class ReferencePath:
+    """
+    A reference path: a polyline sampled from highway-env lanes (or any curve), with arc-length lookups.
+
+    :param points: (N, 2) world positions along the path [m], without repeated points
+    :param headings: (N,) path headings at the points [rad]
+    """
+
+    def __init__(self, points: np.ndarray, headings: np.ndarray) -> None:
+        self.points = np.asarray(points, dtype=np.float64)
+        self.headings = np.unwrap(np.asarray(headings, dtype=np.float64))
+        segments = np.diff(self.points, axis=0)
+        self.s = np.concatenate(([0.0], np.cumsum(np.hypot(segments[:, 0], segments[:, 1]))))
+        self.curvatures = np.gradient(self.headings, self.s)
+        self._point_list, self._s_list = self.points.tolist(), self.s.tolist()
+
+    @classmethod
+    def from_lanes(cls, pieces: list[tuple[AbstractLane, float, float]], step: float) -> ReferencePath:
+        """
+        Sample consecutive lane pieces along their centre lines.
+
+        :param pieces: ``(lane, start, end)`` longitudinal ranges [m], each piece starting where the last ends
+        :param step: sampling interval [m]
+        :return: the reference path
+        """
+        points, headings = [], []
+        for i, (lane, start, end) in enumerate(pieces):
+            # The last piece keeps its end point; the others leave it to the next piece's start.
+            s_values = np.arange(start, end, step)
+            if i == len(pieces) - 1:
+                s_values = np.append(s_values, end)
+            points += [lane.position(s, 0.0) for s in s_values]
+            headings += [lane.heading_at(s) for s in s_values]
+        return cls(np.array(points), np.array(headings))
+
+    @property
+    def length(self) -> float:
+        return float(self.s[-1])
+
+    def project(self, position: np.ndarray) -> tuple[float, float]:
+        """
+        Project a position on the path.
+
+        :param position: world position [m]
+        :return: arc length of the foot point [m] and signed lateral offset [m] (highway-env's lane convention)
+        """
+        offsets = self.points - position
+        i = int(np.argmin(np.einsum("ij,ij->i", offsets, offsets)))
+        px, py = float(position[0]), float(position[1])
+        best = (math.inf, 0.0, 0.0)
+        # Scalar math: this runs every step and numpy's per-call cost dominates on 2-vectors.
+        for j in (i - 1, i):
+            if 0 <= j < len(self.points) - 1:
+                (ax, ay), (bx, by) = self._point_list[j], self._point_list[j + 1]
+                length = self._s_list[j + 1] - self._s_list[j]
+                ux, uy = (bx - ax) / length, (by - ay) / length
+                along = min(max((px - ax) * ux + (py - ay) * uy, 0.0), length)
+                dx, dy = px - ax - along * ux, py - ay - along * uy
+                distance = math.hypot(dx, dy)
+                if distance < best[0]:
+                    best = (distance, self._s_list[j] + along, ux * dy - uy * dx)
+        return best[1], best[2]
+
+    def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Interpolate the path at arc lengths, extended by straight lines beyond both ends.
+
+        :param s: arc lengths [m], a 1-d array
+        :return: positions (K, 2) [m], headings (K,) [rad] and curvatures (K,) [1/m]
+        """
+        headings = np.interp(s, self.s, self.headings)
+        positions = np.empty((len(s), 2))
+        positions[:, 0] = np.interp(s, self.s, self.points[:, 0])
+        positions[:, 1] = np.interp(s, self.s, self.points[:, 1])
+        curvatures = np.interp(s, self.s, self.curvatures)
+        if s[0] < 0.0 or s[-1] > self.s[-1]:
+            beyond = np.where(s > self.s[-1], s - self.s[-1], np.minimum(s, 0.0))
+            positions += beyond[:, None] * np.column_stack([np.cos(headings), np.sin(headings)])
+            curvatures[beyond != 0.0] = 0.0
+        return positions, headings, curvatures

@@ -1,0 +1,117 @@
+"""
+The paper's reward and cost terms (DACER-F, "Simulation Environment" and its reward / cost table).
+
+Every signed term is in ``info["reward_terms"]``; their sum is the reward:
+
+- tracking ``-ρ_lat h(e_lat) - ρ_long h(v_x - v_ref) - ρ_φ h(e_φ)``;
+- control ``-ρ_acc |a_x|³ - ρ_steer |δ - δ_nom|`` (δ_nom: the bicycle-model steering of the reference curvature);
+- comfort ``-ρ_yaw h(r) - ρ_jerk h(Δa_x/Δt) - ρ_Δsteer h(Δδ/Δt)``;
+- liveness ``ρ_step clip(v_x, 0, 3) / 3``;
+- safe following ``-ρ_front (1 - tanh(gap / (v_x Δt_safe)))`` for the nearest vehicle in the ego's corridor ahead;
+- safe space ``-ρ_space Σ intrusion`` of vehicles into a margin box around the ego body (with ``ρ_side`` /
+  ``ρ_rear`` for the parts alongside / behind);
+- boundary ``-ρ_boundary max(0, W_ego/2 + d_thresh - d)`` with ``d`` the distance from the ego centre to the road
+  edge (the paper's ``d_bound - d_thresh + 1.0`` read as a cost that starts ``d_thresh`` before the body touches
+  the edge);
+- ``collision`` / ``off_road``: minus the severe-event penalty on a collision and on leaving the road, which end
+  the episode.
+
+``h(e) = δ_h² (sqrt(1 + (e/δ_h)²) - 1)`` is the pseudo-Huber penalty, ``δ_h = huber_delta`` = 1.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from highway_env.vehicle.kinematics import Vehicle
+
+from sb3_dacerf.envs.driving.common.observation import Scene
+
+REWARD_TERMS = (
+    "tracking_lateral",
+    "tracking_speed",
+    "tracking_heading",
+    "control_acceleration",
+    "control_steering",
+    "comfort_yaw_rate",
+    "comfort_jerk",
+    "comfort_steering_rate",
+    "liveness",
+    "safe_front",
+    "safe_space",
+    "safe_side",
+    "safe_rear",
+    "boundary",
+    "collision",
+    "off_road",
+)
+
+
+def pseudo_huber(error: float, delta: float) -> float:
+    """Huber-like penalty: quadratic near zero, linear with slope ``delta`` far from it."""
+    return delta**2 * (math.sqrt(1.0 + (error / delta) ** 2) - 1.0)
+
+
+def reward_terms(
+    config: dict,
+    scene: Scene,
+    ego: Vehicle,
+    applied_increment: np.ndarray,
+    reference_speed: float,
+    severe_penalty: float,
+) -> dict[str, float]:
+    """
+    The paper's signed reward and cost terms of one step.
+
+    :param config: the env's config (weights ``rho_*`` and the other reward parameters)
+    :param scene: what the ego perceives after the step
+    :param ego: the ego vehicle (dimensions, ``crashed``)
+    :param applied_increment: the ``[Δa_x, Δδ]`` applied this step after clipping (the comfort terms' rates)
+    :param reference_speed: the ego's target speed [m/s]
+    :param severe_penalty: the penalty of a collision or of leaving the road at this step (positive)
+    :return: a dict of {term: signed contribution to the reward}, in the order of ``REWARD_TERMS``
+    """
+    huber_delta = config["huber_delta"]
+    v_x, _, yaw_rate, acceleration, steering = scene.ego.tolist()
+    dt = 1.0 / config["policy_frequency"]
+    beta_nominal = math.asin(min(max(scene.reference_curvature * ego.LENGTH / 2, -1.0), 1.0))
+    steering_nominal = math.atan(2.0 * math.tan(beta_nominal))
+    acceleration_increment, steering_increment = applied_increment.tolist()
+
+    safe_front = safe_space = safe_side = safe_rear = 0.0
+    if len(scene.vehicles):
+        x, y, lengths, widths = scene.vehicles[:, 0], scene.vehicles[:, 1], scene.vehicles[:, 5], scene.vehicles[:, 6]
+        gap_long = np.abs(x) - (ego.LENGTH + lengths) / 2
+        gap_lat = np.abs(y) - (ego.WIDTH + widths) / 2
+        ahead = (x > 0) & (gap_lat < 0)  # vehicles in the ego's corridor ahead
+        if ahead.any():
+            gap = max(float(gap_long[ahead].min()), 0.0)
+            safe_front = config["rho_front"] * (1 - math.tanh(gap / (max(v_x, 1e-3) * config["safe_time_headway"])))
+        margin_long, margin_lat = config["safe_space_margin"]
+        intrusion = np.clip(np.minimum(1 - gap_long / margin_long, 1 - gap_lat / margin_lat), 0.0, 1.0)
+        if intrusion.any():
+            safe_space = config["rho_space"] * float(intrusion.sum())
+            safe_side = config["rho_side"] * float(intrusion[gap_long <= 0].sum())
+            safe_rear = config["rho_rear"] * float(intrusion[(x < 0) & (gap_long > 0)].sum())
+
+    off_road = scene.road_clearance < 0
+    terms = {
+        "tracking_lateral": -config["rho_lat"] * pseudo_huber(scene.lateral_error, huber_delta),
+        "tracking_speed": -config["rho_long"] * pseudo_huber(v_x - reference_speed, huber_delta),
+        "tracking_heading": -config["rho_heading"] * pseudo_huber(scene.heading_error, huber_delta),
+        "control_acceleration": -config["rho_acc"] * abs(acceleration) ** 3,
+        "control_steering": -config["rho_steer"] * abs(steering - steering_nominal),
+        "comfort_yaw_rate": -config["rho_yaw"] * pseudo_huber(yaw_rate, huber_delta),
+        "comfort_jerk": -config["rho_jerk"] * pseudo_huber(acceleration_increment / dt, huber_delta),
+        "comfort_steering_rate": -config["rho_steer_rate"] * pseudo_huber(steering_increment / dt, huber_delta),
+        "liveness": config["rho_step"] * min(max(v_x, 0.0), 3.0) / 3.0,
+        "safe_front": -safe_front,
+        "safe_space": -safe_space,
+        "safe_side": -safe_side,
+        "safe_rear": -safe_rear,
+        "boundary": -config["rho_boundary"] * max(0.0, ego.WIDTH / 2 + config["boundary_threshold"] - scene.road_clearance),
+        "collision": -severe_penalty * float(ego.crashed),
+        "off_road": -severe_penalty * float(off_road),
+    }
+    return {name: float(value) for name, value in terms.items()}
