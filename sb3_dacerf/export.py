@@ -24,6 +24,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
+from sb3_dacerf.common.utils import atomic_path
 from sb3_dacerf.dacerf.dacerf import DACERF
 from sb3_dacerf.dacerf.policies import VelocityField
 
@@ -140,6 +141,56 @@ class _ScriptedDictPolicy(_ScriptedPolicy):
         return self.stochastic(obs, a0)
 
 
+def check_vec_normalize(vec_normalize: object, observation_space: spaces.Space) -> None:
+    """
+    Check that VecNormalize statistics fit a model's observations before they are baked into its graph.
+
+    :param vec_normalize: What was given as the model's VecNormalize (statistics)
+    :param observation_space: The model's observation space
+    :raises TypeError: if ``vec_normalize`` is not a VecNormalize
+    :raises ValueError: if the statistics normalise observations of another layout than the model's (another
+        environment's statistics), naming both
+    """
+    if not isinstance(vec_normalize, VecNormalize):
+        raise TypeError(
+            f"vec_normalize must be a VecNormalize (e.g. VecNormalize.load(...), or a file written by VecNormalize.save), "
+            f"got a {type(vec_normalize).__name__}"
+        )
+    if not getattr(vec_normalize, "norm_obs", False):
+        return
+    obs_rms = getattr(vec_normalize, "obs_rms", None)
+    advice = "Give the statistics saved together with this model (RL Zoo: <log folder>/<env id>/vecnormalize.pkl)."
+    if isinstance(observation_space, spaces.Dict):
+        if not isinstance(obs_rms, dict):
+            raise ValueError(
+                f"The VecNormalize statistics normalise one observation array of shape "
+                f"{np.shape(getattr(obs_rms, 'mean', None))} but the model takes Dict observations with keys "
+                f"{list(observation_space.spaces)}. {advice}"
+            )
+        for key, rms in obs_rms.items():
+            if key not in observation_space.spaces:
+                raise ValueError(
+                    f"The VecNormalize statistics normalise the observation key {key!r}, which the model does not have "
+                    f"(its keys: {list(observation_space.spaces)}). {advice}"
+                )
+            if np.shape(rms.mean) != observation_space[key].shape:
+                raise ValueError(
+                    f"The VecNormalize statistics of the key {key!r} have shape {np.shape(rms.mean)} but the model's "
+                    f"{key!r} observations have shape {observation_space[key].shape}. {advice}"
+                )
+        return
+    if isinstance(obs_rms, dict):
+        raise ValueError(
+            f"The VecNormalize statistics are for Dict observations (keys {list(obs_rms)}) but the model takes one "
+            f"observation array of shape {observation_space.shape}. {advice}"
+        )
+    if np.shape(getattr(obs_rms, "mean", None)) != observation_space.shape:
+        raise ValueError(
+            f"The VecNormalize statistics normalise observations of shape {np.shape(getattr(obs_rms, 'mean', None))} "
+            f"but the model's observations have shape {observation_space.shape}. {advice}"
+        )
+
+
 def export_policy(
     model: BaseAlgorithm,
     path: str | Path,
@@ -159,11 +210,13 @@ def export_policy(
     and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch dimension.
 
     :param model: A DACERF model (trained or not)
-    :param path: File to write (``.onnx`` or ``.pt`` by convention); its folder must exist
+    :param path: File to write (``.onnx`` or ``.pt`` by convention); its folder must exist. The file is written
+        whole or not at all: it replaces an existing one only once complete
     :param format: ``"onnx"`` or ``"torchscript"``
     :param n_sampling_steps: Number of Euler steps, fixed in the graph (the model's ``n_sampling_steps`` by default)
     :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``VecNormalize.load``), if any:
-        its observation normalisation is then applied inside the graph, so the graph takes raw observations
+        its observation normalisation is then applied inside the graph, so the graph takes raw observations; statistics
+        of another observation layout are refused (:func:`check_vec_normalize`)
     :param opset_version: ONNX opset
     :return: The path written
     """
@@ -183,8 +236,8 @@ def export_policy(
             f"Cannot export a policy for the observation space {observation_space}: supported are Box, Discrete, "
             "MultiDiscrete and MultiBinary observations, and Dict spaces of them."
         )
-    if vec_normalize is not None and not isinstance(vec_normalize, VecNormalize):
-        raise TypeError(f"vec_normalize must be a VecNormalize (e.g. VecNormalize.load(...)), got {type(vec_normalize).__name__}")
+    if vec_normalize is not None:
+        check_vec_normalize(vec_normalize, observation_space)
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"Cannot write {path}: the folder {path.parent} does not exist")
@@ -196,7 +249,9 @@ def export_policy(
     if format == "torchscript":
         scripted_class = _ScriptedPolicy if module.obs_keys is None else _ScriptedDictPolicy
         scripted = th.jit.script(scripted_class(th.jit.trace(module, (obs,)), th.jit.trace(module, (obs, a0))))
-        th.jit.save(scripted, str(path))
+        # Written whole or not at all: a failed write leaves a previous file at `path` as it was
+        with atomic_path(path) as temporary:
+            th.jit.save(scripted, str(temporary))
         return path
 
     import onnx  # the optional "export" extra: imported only here, so that TorchScript export does not need it
@@ -204,24 +259,26 @@ def export_policy(
     obs_names = ["obs"] if module.obs_keys is None else module.obs_keys
     # a0's batch is its own dimension: 1 (one a0 for the whole batch, as the default) or the observations' batch
     dynamic_axes = {**{name: {0: "batch"} for name in [*obs_names, "action"]}, "a0": {0: "a0_batch"}}
-    with warnings.catch_warnings():
-        # torch>=2.9 deprecates the TorchScript-based exporter; the torch.export one needs onnxscript, not a dependency
-        warnings.simplefilter("ignore", DeprecationWarning)
-        th.onnx.export(
-            module,
-            (obs, a0),
-            str(path),
-            dynamo=False,
-            input_names=[*obs_names, "a0"],
-            output_names=["action"],
-            dynamic_axes=dynamic_axes,
-            opset_version=opset_version,
-        )
-    graph = onnx.load(str(path))
-    # An initializer with an input's name is that input's default value: a0 = 0, deterministic unless overridden
-    graph.graph.initializer.append(onnx.numpy_helper.from_array(np.zeros((1, actor.action_dim), dtype=np.float32), "a0"))
-    onnx.checker.check_model(graph)
-    onnx.save(graph, str(path))
+    # Written whole or not at all: a failed write leaves a previous file at `path` as it was
+    with atomic_path(path) as temporary:
+        with warnings.catch_warnings():
+            # torch>=2.9 deprecates the TorchScript-based exporter; the torch.export one needs onnxscript, not a dependency
+            warnings.simplefilter("ignore", DeprecationWarning)
+            th.onnx.export(
+                module,
+                (obs, a0),
+                str(temporary),
+                dynamo=False,
+                input_names=[*obs_names, "a0"],
+                output_names=["action"],
+                dynamic_axes=dynamic_axes,
+                opset_version=opset_version,
+            )
+        graph = onnx.load(str(temporary))
+        # An initializer with an input's name is that input's default value: a0 = 0, deterministic unless overridden
+        graph.graph.initializer.append(onnx.numpy_helper.from_array(np.zeros((1, actor.action_dim), dtype=np.float32), "a0"))
+        onnx.checker.check_model(graph)
+        onnx.save(graph, str(temporary))
     return path
 
 
@@ -250,8 +307,14 @@ def main() -> None:
         if not args.vec_normalize.is_file():
             parser.error(f"no VecNormalize statistics file at {args.vec_normalize}")
         # What VecNormalize.load does, without an environment to wrap: only the statistics are needed
-        with open(args.vec_normalize, "rb") as file:
-            vec_normalize = pickle.load(file)
+        try:
+            with open(args.vec_normalize, "rb") as file:
+                vec_normalize = pickle.load(file)
+        except Exception as error:
+            parser.error(
+                f"could not read {args.vec_normalize} as VecNormalize statistics (a file written by VecNormalize.save): "
+                f"{type(error).__name__}: {error}"
+            )
     out = args.out or args.model.with_suffix(".onnx" if args.format == "onnx" else ".pt")
     n_sampling_steps = model.actor.n_sampling_steps if args.n_sampling_steps is None else args.n_sampling_steps
     try:

@@ -1,3 +1,5 @@
+import pickle
+import re
 import subprocess
 import sys
 
@@ -183,3 +185,91 @@ def test_clear_errors(tmp_path):
     model.observation_space = spaces.Tuple([spaces.Box(-1.0, 1.0, (3,))])
     with pytest.raises(TypeError, match="Cannot export a policy for the observation space"):
         export_policy(model, tmp_path / "p.onnx")
+
+
+@pytest.mark.parametrize("format", ["onnx", "torchscript"])
+def test_failed_export_leaves_the_previous_file_intact(tmp_path, monkeypatch, format):
+    model = make_model("MlpPolicy")
+    path = export_policy(model, tmp_path / "policy", format)
+    obs = sample_observations(model, 10)
+    expected = run_exported(path, format, obs)
+
+    def write_then_fail(obj, file, *args, **kwargs):
+        with open(file, "wb") as output:
+            output.write(b"\0" * 4096)
+        raise OSError(28, "No space left on device")
+
+    with th.no_grad():
+        next(model.actor.parameters()).add_(1.0)  # another policy, whose export fails half-way
+    if format == "onnx":
+        monkeypatch.setattr(pytest.importorskip("onnx"), "save", write_then_fail)
+    else:
+        monkeypatch.setattr(th.jit, "save", write_then_fail)
+    with pytest.raises(OSError, match="No space left"):
+        export_policy(model, path, format)
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left behind
+    np.testing.assert_array_equal(run_exported(path, format, obs), expected)
+
+
+class BoxObsEnv(gym.Env):
+    """Box observations of a given size, Pendulum's action space."""
+
+    action_space = spaces.Box(-2.0, 2.0, (1,), dtype=np.float32)
+
+    def __init__(self, size: int):
+        self.observation_space = spaces.Box(-1.0, 1.0, (size,), dtype=np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+def vec_normalize_file(tmp_path, env, name: str, **kwargs) -> str:
+    path = str(tmp_path / name)
+    VecNormalize(make_vec_env(env), **kwargs).save(path)
+    return path
+
+
+def test_command_line_refuses_vec_normalize_statistics_of_another_observation_space(tmp_path, monkeypatch, capsys):
+    # Pendulum's observations have 3 entries; each file below would bake wrong statistics or crash the export
+    make_model("MlpPolicy").save(tmp_path / "model.zip")
+    (tmp_path / "junk.pkl").write_bytes(b"not a pickle")
+    with open(tmp_path / "dict.pkl", "wb") as file:
+        pickle.dump(dict(mean=0.0), file)
+    for statistics, message in [
+        # a 1-entry mean broadcasts over 3 entries: without the check, the export succeeded with wrong statistics
+        (
+            vec_normalize_file(tmp_path, lambda: BoxObsEnv(1), "one.pkl"),
+            r"shape \(1,\) but the model's observations have shape \(3,\)",
+        ),
+        (
+            vec_normalize_file(tmp_path, lambda: BoxObsEnv(5), "five.pkl"),
+            r"shape \(5,\) but the model's observations have shape \(3,\)",
+        ),
+        (
+            vec_normalize_file(tmp_path, lambda: SimpleMultiObsEnv(discrete_actions=False), "keys.pkl", norm_obs_keys=["vec"]),
+            r"are for Dict observations \(keys \['vec'\]\)",
+        ),
+        (str(tmp_path / "junk.pkl"), "could not read .*junk.pkl as VecNormalize statistics"),
+        (str(tmp_path / "dict.pkl"), "vec_normalize must be a VecNormalize"),
+    ]:
+        monkeypatch.setattr(sys, "argv", ["export", str(tmp_path / "model.zip"), "--vec-normalize", statistics])
+        with pytest.raises(SystemExit) as exit_info:
+            main()
+        error = capsys.readouterr().err
+        assert exit_info.value.code == 2, error
+        assert re.search(message, error), error
+        assert "Traceback" not in error and not (tmp_path / "model.onnx").exists()
+
+
+def test_dict_model_refuses_statistics_of_another_layout(tmp_path):
+    model = make_model("MultiInputPolicy")
+    box_statistics = VecNormalize(make_vec_env("Pendulum-v1"))
+    with pytest.raises(ValueError, match=r"one observation array of shape \(3,\) but the model takes Dict observations"):
+        export_policy(model, tmp_path / "p.onnx", vec_normalize=box_statistics)
+    other_shape = VecNormalize(make_vec_env(lambda: SimpleMultiObsEnv(discrete_actions=False)), norm_obs_keys=["vec"])
+    other_shape.obs_rms["vec"].mean = np.zeros(7)
+    with pytest.raises(ValueError, match=r"key 'vec' have shape \(7,\) but the model's 'vec' observations have shape \(5,\)"):
+        export_policy(model, tmp_path / "p.onnx", vec_normalize=other_shape)

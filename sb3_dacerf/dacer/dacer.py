@@ -5,7 +5,7 @@ import torch as th
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 
-from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, merge_policy_kwarg
 from sb3_dacerf.common.utils import frozen
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
 from sb3_dacerf.dacer.policies import CnnPolicy, DACERPolicy, DiffusionActor, MlpPolicy, MultiInputPolicy
@@ -34,7 +34,8 @@ class DACER(TwinCriticAlgorithm):
         it can be a function of the current progress remaining (from 1 to 0)
     :param tau: the soft update coefficient ("Polyak update", between 0 and 1)
     :param policy_delay: Policy and target network updates happen once every ``policy_delay`` critic updates
-    :param n_diffusion_steps: Number of reverse diffusion steps per action (20 in both papers)
+    :param n_diffusion_steps: Number of reverse diffusion steps per action (20 in both papers); also accepted in
+        ``policy_kwargs``, 20 if given in neither
     :param alpha_learning_rate: Learning rate (Adam) of ``log α``
     :param initial_log_alpha: Initial ``log α`` (the exploration noise starts at ``0.15 exp(initial_log_alpha)``)
     :param target_entropy: Target entropy of the policy; ``"auto"`` is ``-0.9 * action_dim``
@@ -67,7 +68,7 @@ class DACER(TwinCriticAlgorithm):
         policy_kwargs: dict[str, Any] | None = None,
         tau: float = 0.005,
         policy_delay: int = 2,
-        n_diffusion_steps: int = 20,
+        n_diffusion_steps: int | None = None,
         target_entropy: str | float = "auto",
         alpha_learning_rate: float = 3e-2,
         initial_log_alpha: float = 1.2,
@@ -79,7 +80,7 @@ class DACER(TwinCriticAlgorithm):
         super().__init__(policy, env, learning_rate, tau=tau, policy_kwargs=policy_kwargs, **kwargs)
 
         # A copy: the caller's policy_kwargs dict stays reusable
-        self.policy_kwargs = {**self.policy_kwargs, "n_diffusion_steps": n_diffusion_steps}
+        self.policy_kwargs = merge_policy_kwarg(self.policy_kwargs, "n_diffusion_steps", n_diffusion_steps, 20, "DACER")
         self.policy_delay = policy_delay
         self.alpha_learning_rate = alpha_learning_rate
         self.initial_log_alpha = initial_log_alpha
@@ -138,7 +139,7 @@ class DACER(TwinCriticAlgorithm):
                 self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, self.entropy - self.target_entropy)
                 self.alpha_optimizer.step()
 
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/n_updates", self._n_updates)
         self.logger.record("train/critic_loss", np.mean(critic_losses))
         if len(actor_losses) > 0:
             self.logger.record("train/actor_loss", np.mean(actor_losses))

@@ -6,11 +6,11 @@ import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
 from sb3_dacerf.common.langevin import MinQActionGradient, compiled_langevin_targets, langevin_targets
-from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, merge_policy_kwarg
 from sb3_dacerf.common.utils import frozen
 from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, MlpPolicy, MultiInputPolicy, VelocityField
 
@@ -64,7 +64,8 @@ class DACERF(TwinCriticAlgorithm):
     :param langevin_steps: Number of Langevin steps ``N_l`` that turn replay actions into targets ``a*``
     :param langevin_step_size: Langevin step size ``η_a``
     :param langevin_temperature: Temperature ``α`` of the energy-based target ``exp(Q / α)``
-    :param n_sampling_steps: Number of Euler steps of the flow sampler (1 in the paper: one network call per action)
+    :param n_sampling_steps: Number of Euler steps of the flow sampler (1 in the paper: one network call per action);
+        also accepted in ``policy_kwargs``, 1 if given in neither
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
     :param flow_matching_weights: How the two terms of the actor loss are weighted: ``"gain"`` (scale- and
         shift-free, the default), ``"q_scale"`` (``λ_f`` times ``mean|Q|``, version 0.1.0 and the paper preset),
@@ -121,7 +122,7 @@ class DACERF(TwinCriticAlgorithm):
         langevin_steps: int = 20,
         langevin_step_size: float = 0.03,
         langevin_temperature: float = 0.01,
-        n_sampling_steps: int = 1,
+        n_sampling_steps: int | None = None,
         flow_matching_coef: float = 1.0,
         flow_matching_weights: str = "gain",
         ent_coef: str | float = "auto",
@@ -174,7 +175,7 @@ class DACERF(TwinCriticAlgorithm):
         self.ent_coef_optimizer: th.optim.Adam | None = None
         self._n_actor_updates = 0
         # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
-        self.policy_kwargs = {**self.policy_kwargs, "n_sampling_steps": n_sampling_steps}
+        self.policy_kwargs = merge_policy_kwarg(self.policy_kwargs, "n_sampling_steps", n_sampling_steps, 1, "DACERF")
         # torch.compile of the Langevin loop (an option: compiling costs ~30 s at the first update)
         self.compile_langevin = compile_langevin
 
@@ -185,14 +186,21 @@ class DACERF(TwinCriticAlgorithm):
         super()._setup_model()
         if self.flow_matching_weights not in FLOW_MATCHING_WEIGHTS:
             raise ValueError(
-                f"Invalid flow_matching_weights={self.flow_matching_weights!r}: it must be one of {', '.join(FLOW_MATCHING_WEIGHTS)}."
+                f"Invalid flow_matching_weights={self.flow_matching_weights!r}: "
+                f"it must be one of {', '.join(FLOW_MATCHING_WEIGHTS)}."
             )
         if self.entropy_estimate not in ("fit", "noise"):
             raise ValueError(f"Invalid entropy_estimate={self.entropy_estimate!r}: it must be 'fit' or 'noise'.")
         if self.target_entropy == "auto":
             self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
-        elif isinstance(self.target_entropy, bool) or not isinstance(self.target_entropy, (int, float, np.number)):
-            raise ValueError(f"Invalid target_entropy={self.target_entropy!r}: it must be 'auto' or a number (e.g. -dim(A)).")
+        elif (
+            isinstance(self.target_entropy, bool)
+            or not isinstance(self.target_entropy, (int, float, np.number))
+            or not math.isfinite(self.target_entropy)
+        ):
+            raise ValueError(
+                f"Invalid target_entropy={self.target_entropy!r}: it must be 'auto' or a finite number (e.g. -dim(A))."
+            )
         self.target_entropy = float(self.target_entropy)
         initial_ent_coef = self._initial_ent_coef()
         self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
@@ -253,7 +261,7 @@ class DACERF(TwinCriticAlgorithm):
             # Target networks: Q̄ <- (1 - τ) Q̄ + τ Q
             self._update_targets()
 
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/n_updates", self._n_updates)
         self.logger.record("train/critic_loss", np.mean(critic_losses))
         self.logger.record("train/ent_coef", self.actor.log_alpha.exp().item())
         for key, values in actor_logs.items():
