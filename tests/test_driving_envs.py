@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -275,6 +276,84 @@ def test_bad_kwargs_raise_clear_errors():
         gym.make("DACERF-Intersection-v0", config={"reference_speed_ranges": {"left": [4, 6]}})
     with pytest.raises(ValueError, match="render_mode"):
         gym.make("DACERF-Intersection-v0", render_mode="video")
+
+
+@pytest.mark.parametrize(
+    "env_id, config, match",
+    [
+        ("DACERF-Intersection-v0", {"duration": "long"}, r"config\['duration'\] must be a number > 0, got 'long' \(str\)"),
+        ("DACERF-Multilane-v0", {"policy_frequency": 0}, r"config\['policy_frequency'\] must be an integer > 0, got 0"),
+        ("DACERF-Multilane-v0", {"simulation_frequency": 15}, r"must be a multiple of config\['policy_frequency'\]"),
+        ("DACERF-Multilane-v0", {"lanes_count": 0}, r"config\['lanes_count'\] must be an integer >= 1"),
+        ("DACERF-Multilane-v0", {"vehicles_count": 2.5}, r"config\['vehicles_count'\] must be an integer >= 0, got 2.5"),
+        ("DACERF-Multilane-v0", {"reference_speed_range": [25, 15]}, r"config\['reference_speed_range'\] must be a pair"),
+        ("DACERF-Multilane-v0", {"steering_range": [-2.0, 2.0]}, r"config\['steering_range'\].*within \[-1.5, 1.5\]"),
+        ("DACERF-Multilane-v0", {"rho_lat": -1.0}, r"config\['rho_lat'\] must be a number >= 0"),
+        ("DACERF-Multilane-v0", {"collision_penalty": "big"}, r"config\['collision_penalty'\]"),
+        ("DACERF-Multilane-v0", {"huber_delta": 0}, r"config\['huber_delta'\] must be a number > 0"),
+        ("DACERF-Multilane-v0", {"safe_space_margin": [3.0]}, r"config\['safe_space_margin'\] must be a pair"),
+        ("DACERF-Multilane-v0", {"render_agent": "yes"}, r"config\['render_agent'\] must be True or False"),
+        ("DACERF-Intersection-v0", {"spawn_probability": 1.5}, r"config\['spawn_probability'\] must be a number >= 0 and <= 1"),
+        ("DACERF-Intersection-v0", {"routes": "left"}, r"config\['routes'\] must be a non-empty list"),
+        ("DACERF-Intersection-v0", {"reference_speed_ranges": {"left": "fast"}}, r"config\['reference_speed_ranges'\]"),
+        ("DACERF-Intersection-v0", {"other_vehicles_type": "no.such.Vehicle"}, r"config\['other_vehicles_type'\]"),
+    ],
+)
+def test_config_values_are_checked_at_make(env_id, config, match):
+    with pytest.raises(ValueError, match=match) as error:
+        gym.make(env_id, config=config)
+    assert "leave the key out for its default" in str(error.value) or "the paper's setting" in str(error.value)
+    # the same checks run on reset(options={"config": ...})
+    env = gym.make(env_id, config={"duration": 1})
+    with pytest.raises(ValueError, match=match):
+        env.reset(seed=0, options={"config": config})
+
+
+def test_every_config_key_has_a_type_and_range_check():
+    from sb3_dacerf.envs.driving.intersection import IntersectionEnv
+    from sb3_dacerf.envs.driving.multilane import MultilaneEnv
+
+    for env_class in (MultilaneEnv, IntersectionEnv):
+        assert set(env_class.default_config()) <= set(env_class.config_rules()), env_class
+        rules = env_class.config_rules()
+        assert all(rules[key](value) is None for key, value in env_class.default_config().items())
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_bad_actions_raise_clear_errors(env_id):
+    env = make(env_id)
+    env.reset(seed=0)
+    for action in ([np.nan, 0.0], [0.0, np.nan], [np.inf, 0.0]):
+        with pytest.raises(ValueError, match="NaN or infinite.*check its inputs"):
+            env.step(np.array(action, dtype=np.float32))
+    for action in (np.zeros(3), np.zeros((1, 2)), np.float32(0.1), np.zeros((2, 2))):
+        with pytest.raises(ValueError, match=r"must have shape \(2,\)"):
+            env.step(action)
+    with pytest.raises(ValueError, match="two numbers"):
+        env.step(["fast", "left"])
+    # nothing was simulated by the rejected actions
+    assert env.unwrapped.time == 0 and np.all(np.isfinite(env.unwrapped.vehicle.position))
+    env.step([0.1, 0.0])  # a list of two numbers is fine
+
+
+def test_step_before_reset_and_after_the_end():
+    from gymnasium.error import ResetNeeded
+
+    from sb3_dacerf.envs.driving.multilane import MultilaneEnv
+
+    with pytest.raises(ResetNeeded, match="before calling env.reset"):  # gym.make's OrderEnforcing
+        make("DACERF-Multilane-v0").step(np.zeros(2, dtype=np.float32))
+    env = MultilaneEnv(config={"duration": 0.2})
+    env.reset(seed=0)
+    env.step(np.zeros(2, dtype=np.float32))
+    assert env.step(np.zeros(2, dtype=np.float32))[3]  # truncated
+    with pytest.warns(UserWarning, match="already returned terminated = True or truncated = True"):
+        env.step(np.zeros(2, dtype=np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once per episode, and not after a reset
+        env.step(np.zeros(2, dtype=np.float32))
+        env.reset(seed=1)
+        env.step(np.zeros(2, dtype=np.float32))
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

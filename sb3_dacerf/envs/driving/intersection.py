@@ -27,6 +27,7 @@ from highway_env.envs.intersection_env import IntersectionEnv as HighwayIntersec
 from highway_env.road.lane import AbstractLane
 
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
+from sb3_dacerf.envs.driving.common.config import interval, number
 
 ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
 """Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
@@ -69,6 +70,19 @@ def u_turn_points(start: np.ndarray, heading: float, turn_sign: float, step: flo
     return np.concatenate([*points, [position]]), np.concatenate([*headings, [psi]])
 
 
+def _routes_rule(value: object) -> str | None:
+    if isinstance(value, (list, tuple)) and value and all(isinstance(route, str) and route in ROUTES for route in value):
+        return None
+    return f"a non-empty list of routes among {list(ROUTES)}"
+
+
+def _speed_ranges_rule(value: object) -> str | None:
+    speed_range = interval(0.0, 40.0)
+    if isinstance(value, dict) and all(route in ROUTES and speed_range(bounds) is None for route, bounds in value.items()):
+        return None
+    return f"a dict of route -> [low, high] target speeds [m/s] within [0, 40], routes among {list(ROUTES)}"
+
+
 class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     """
     Urban intersection with straight, left, right and U-turn routes; see the module docstring.
@@ -82,6 +96,12 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         "sparse": {"initial_vehicle_count": 5, "spawn_probability": 0.03},
         "normal": {"initial_vehicle_count": 10, "spawn_probability": 0.06},
         "dense": {"initial_vehicle_count": 15, "spawn_probability": 0.12},
+    }
+    CONFIG_RULES = {
+        "initial_vehicle_count": number(0, integer=True),
+        "spawn_probability": number(0.0, 1.0),
+        "routes": _routes_rule,
+        "reference_speed_ranges": _speed_ranges_rule,
     }
     EXIT_DISTANCE = 25.0
     """Distance driven into an exit lane that ends the episode [m] (highway-env's ``has_arrived``)."""

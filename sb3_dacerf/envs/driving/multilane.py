@@ -25,6 +25,7 @@ from highway_env.road.road import LaneIndex
 from highway_env.vehicle.kinematics import Vehicle
 
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
+from sb3_dacerf.envs.driving.common.config import choice, interval, number
 
 REFERENCE_LANES = ("random", "current", "left", "right")
 
@@ -42,6 +43,14 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         "sparse": {"vehicles_count": 6},
         "normal": {"vehicles_count": 12},
         "dense": {"vehicles_count": 20},
+    }
+    CONFIG_RULES = {
+        "lanes_count": number(1, integer=True),
+        "vehicles_count": number(0, integer=True),
+        "traffic_window": interval(contains_zero=True),
+        "traffic_speed_range": interval(0.0, Vehicle.MAX_SPEED),
+        "reference_speed_range": interval(0.0, Vehicle.MAX_SPEED),
+        "reference_lane": choice(REFERENCE_LANES),
     }
     TRAFFIC_GAP = 15.0
     """Minimum distance between the centres of two vehicles placed in the same lane [m]."""

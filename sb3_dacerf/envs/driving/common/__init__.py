@@ -3,6 +3,7 @@ Layer shared by the paper's driving environments, built on highway-env: incremen
 reference path and the paper's reward / cost terms. Laid out like highway-env's own ``highway_env.envs.common``:
 
 - :mod:`.abstract`: :class:`PaperDrivingMixin`, the task layer (config, step loop, termination, info, rendering);
+- :mod:`.config`: type and range checks of every config value, run at ``gym.make`` / ``reset(options=...)``;
 - :mod:`.action`: :class:`IncrementalAction`, the action ``[Δa_x, Δδ]`` (increments of acceleration and steering);
 - :mod:`.observation`: :class:`Scene` (what the ego perceives, computed once per step) and
   :class:`EgoFrameObservation`, the flat ego-frame observation;

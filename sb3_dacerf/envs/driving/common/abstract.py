@@ -9,9 +9,12 @@ import contextlib
 import os
 
 import numpy as np
+from gymnasium import logger
+from gymnasium.error import ResetNeeded
 from highway_env.envs.common.graphics import EnvViewer
 
 from sb3_dacerf.envs.driving.common.action import IncrementalAction
+from sb3_dacerf.envs.driving.common.config import COMMON_RULES, Rule, check_config
 from sb3_dacerf.envs.driving.common.observation import EgoFrameObservation, Scene, observe_scene
 from sb3_dacerf.envs.driving.common.reference import ReferencePath
 from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, reward_terms
@@ -74,6 +77,8 @@ class PaperDrivingMixin:
 
     DENSITY_CONFIGS: dict[str, dict] = {}
     """Config overrides of each traffic density."""
+    CONFIG_RULES: dict[str, Rule] = {}
+    """Type and range checks of the scenario's own config keys (see :mod:`.config`)."""
 
     reference: ReferencePath
     reference_speed: float
@@ -88,6 +93,8 @@ class PaperDrivingMixin:
         self.density = density
         self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
         self.scene: Scene | None = None
+        self._episode_over = False  # terminated or truncated returned since the last reset
+        self._warned_step_after_end = False
         super().__init__({**self.DENSITY_CONFIGS[density], **(config or {})}, render_mode=render_mode)
 
     @classmethod
@@ -140,6 +147,12 @@ class PaperDrivingMixin:
                 f"Unknown config key(s) {unknown} for {type(self).__name__}; valid keys: {sorted(self.default_config())}"
             )
         super().configure(config)
+        check_config(self.config, self.config_rules(), self.default_config(), type(self).__name__)
+
+    @classmethod
+    def config_rules(cls) -> dict[str, Rule]:
+        """The type and range check of every config key."""
+        return {**COMMON_RULES, **cls.CONFIG_RULES}
 
     def define_spaces(self) -> None:
         config = self.config
@@ -159,6 +172,7 @@ class PaperDrivingMixin:
 
     def _reset(self) -> None:
         self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
+        self._episode_over = self._warned_step_after_end = False
         super()._reset()
         # The ego stops instead of reversing: the paper's task has no reverse gear.
         self.vehicle.MIN_SPEED = 0.0
@@ -168,9 +182,22 @@ class PaperDrivingMixin:
         """
         Apply ``[Δa_x, Δδ]``, simulate one policy period, then perceive the scene once and derive from it the
         observation, reward, termination and info.
+
+        :param action: ``[Δa_x, Δδ]``, shape (2,); values beyond the action space's bounds are clipped to them
+        :raises ValueError: an action of another shape, or with NaN / infinite values
+        :raises gymnasium.error.ResetNeeded: ``step()`` before the first ``reset()``
         """
         if self.road is None or self.vehicle is None:
-            raise NotImplementedError("The road and vehicle must be initialized in the environment implementation")
+            raise ResetNeeded("Cannot call step() before reset(): call env.reset(seed=...) first")
+        action = self.action_type.check(action)
+        if self._episode_over and not self._warned_step_after_end:
+            # As Gymnasium's own envs (CartPole) do: warn once, then keep simulating.
+            logger.warn(
+                "You are calling 'step()' even though this environment has already returned terminated = True or "
+                "truncated = True. You should always call 'reset()' once you receive either: the episode is over "
+                "(collision, off the road, arrived or time limit) and any further steps are undefined behavior."
+            )
+            self._warned_step_after_end = True
         self.time += 1 / self.config["policy_frequency"]
         self._simulate(action)
         self.scene = observe_scene(self)
@@ -182,6 +209,7 @@ class PaperDrivingMixin:
         info = self._info(obs, action)
         if self.render_mode == "human":
             self.render()
+        self._episode_over = self._episode_over or terminated or truncated
         return obs, reward, terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
