@@ -1,0 +1,93 @@
+"""
+A scripted driver for the paper's driving scenarios: a baseline to compare learnt policies with, and the "competent
+driver" of the reward audit (``benchmarks/driving_reward_audit.py``).
+
+It reads only the observation (and the env's config for the scales, the action bounds and the ego's length): pure
+pursuit on the observed reference waypoints, a speed controller towards the target speed encoded in the waypoint
+spacing, braking for the nearest vehicle in its corridor ahead and, with ``yield_to_crossing=True``, braking for
+any vehicle whose constant-velocity prediction meets the ego's path within ``horizon`` seconds (crossing and
+oncoming traffic at the intersection, vehicles in the target lane of a lane change).
+
+Example::
+
+    env = gym.make("DACERF-Intersection-v0")
+    driver = ScriptedDriver(env)
+    obs, _ = env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step(driver(obs))
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
+
+
+class ScriptedDriver:
+    """
+    Reference tracker with braking for the vehicle ahead and, optionally, yielding to crossing traffic.
+
+    :param env: a ``DACERF-Multilane-v0`` / ``DACERF-Intersection-v0`` env (wrapped or not)
+    :param yield_to_crossing: brake for vehicles predicted to meet the ego's path (see the module docstring)
+    :param horizon: prediction horizon of the yielding check [s]
+    :param conflict_distance: centre distance counted as a conflict [m]
+    """
+
+    def __init__(self, env: gym.Env, yield_to_crossing: bool = True, horizon: float = 2.5, conflict_distance: float = 3.0):
+        unwrapped = env.unwrapped
+        config = unwrapped.config
+        self.position_scale, self.speed_scale = config["position_scale"], config["speed_scale"]
+        self.n_waypoints = config["reference_waypoints"]
+        self.waypoint_interval = config["reference_waypoint_interval"]
+        self.low, self.high = env.action_space.low, env.action_space.high
+        self.length = unwrapped.vehicle.LENGTH
+        self.yield_to_crossing = yield_to_crossing
+        self.horizon, self.conflict_distance = horizon, conflict_distance
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """
+        :param obs: the flat observation of one env
+        :return: the increments [Δa_x, Δδ]
+        """
+        v_x, _, _, acceleration, steering = obs[:EGO_FEATURES] * np.array([self.speed_scale, self.speed_scale, 1, 1, 1])
+        end = EGO_FEATURES + WAYPOINT_FEATURES * self.n_waypoints
+        waypoints = obs[EGO_FEATURES:end].reshape(-1, WAYPOINT_FEATURES) * self.position_scale
+        vehicles = obs[end:].reshape(-1, VEHICLE_FEATURES)
+        vehicles = vehicles[vehicles[:, 5] > 0]
+
+        # The waypoint spacing is the target speed times the waypoint interval.
+        reference_speed = np.hypot(*(waypoints[1, :2] - waypoints[0, :2])) / self.waypoint_interval
+        # Pure pursuit: look ahead ~0.8 s of travel, at least 4 m, along the waypoints.
+        distances = np.hypot(waypoints[:, 0], waypoints[:, 1])
+        target = waypoints[min(int(np.searchsorted(distances, max(4.0, 0.8 * v_x))), self.n_waypoints - 1), :2]
+        curvature = 2 * target[1] / max(target @ target, 1e-6)
+        desired_steering = np.arctan(2 * np.tan(np.arcsin(np.clip(curvature * self.length / 2, -1, 1))))
+        desired_acceleration = 0.5 * (reference_speed - v_x)
+
+        for x, y in vehicles[:, :2] * self.position_scale:
+            gap = x - self.length
+            if x > 0 and abs(y) < 2.5 and gap < 2.0 * max(v_x, 1.0) + 5:
+                desired_acceleration = -1.0
+        if self.yield_to_crossing and len(vehicles) and self._conflict(waypoints, vehicles, v_x):
+            desired_acceleration = -1.0
+
+        increment = np.array([desired_acceleration - acceleration, desired_steering - steering])
+        return np.clip(increment, self.low, self.high).astype(np.float32)
+
+    def _conflict(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float) -> bool:
+        """Whether a vehicle's constant-velocity prediction comes within ``conflict_distance`` of the ego's path."""
+        times = np.arange(0.0, self.horizon + 1e-9, 0.25)
+        # The ego moves along the waypoints at its speed, at least 2 m/s (so that a stopped ego checks it may go).
+        path_s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(waypoints[:, :2], axis=0).T))))
+        ego_s = np.minimum(max(v_x, 2.0) * times, path_s[-1])
+        ego = np.column_stack([np.interp(ego_s, path_s, waypoints[:, 0]), np.interp(ego_s, path_s, waypoints[:, 1])])
+        for x, y, cos_phi, sin_phi, speed, _ in vehicles:
+            position = np.array([x, y]) * self.position_scale
+            if position[0] < 0 and cos_phi > 0.9:
+                continue  # following the ego in its direction: not ours to yield to
+            velocity = speed * self.speed_scale * np.array([cos_phi, sin_phi])
+            other = position + times[:, None] * velocity
+            if np.min(np.hypot(*(other - ego).T)) < self.conflict_distance:
+                return True
+        return False
