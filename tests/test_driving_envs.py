@@ -159,20 +159,42 @@ def test_reward_terms_signs():
     assert terms["control_acceleration"] == pytest.approx(-(0.25**3))
 
 
-def test_collision_ends_episode_with_penalty():
-    env, unwrapped, ego, lane = empty_highway()
+# The default "dynamic" penalty 1 step into a 3 s episode: 200 + (rho_step 1 + cost rate 20) * 29 steps left.
+DYNAMIC_PENALTY_AT_FIRST_STEP = 200.0 + 21.0 * 29
+
+
+@pytest.mark.parametrize("penalty, expected", [(None, DYNAMIC_PENALTY_AT_FIRST_STEP), (200.0, 200.0)])
+def test_collision_ends_episode_with_penalty(penalty, expected):
+    env, unwrapped, ego, lane = empty_highway(**({} if penalty is None else {"collision_penalty": penalty}))
     add_vehicle(unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 3.0, speed=5.0)
     _, reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
     assert terminated and info["collision"] and not info["is_success"]
-    assert info["reward_terms"]["collision"] == -200.0 and reward <= -200.0
+    assert info["reward_terms"]["collision"] == pytest.approx(-expected) and reward <= -expected
 
 
-def test_leaving_the_road_ends_episode_with_penalty():
-    env, unwrapped, ego, lane = empty_highway()
+@pytest.mark.parametrize("penalty, expected", [(None, DYNAMIC_PENALTY_AT_FIRST_STEP), (200.0, 200.0)])
+def test_leaving_the_road_ends_episode_with_penalty(penalty, expected):
+    env, unwrapped, ego, lane = empty_highway(**({} if penalty is None else {"collision_penalty": penalty}))
     ego.position = np.array([ego.position[0], -2.5])  # beyond the left edge of lane 0 (centre y = 0, 4 m wide)
     _, reward, terminated, _, info = env.step(np.zeros(2, dtype=np.float32))
     assert terminated and info["off_road"] and not info["is_success"]
-    assert info["reward_terms"]["off_road"] == -200.0 and reward <= -200.0
+    assert info["reward_terms"]["off_road"] == pytest.approx(-expected) and reward <= -expected
+
+
+def test_dynamic_severe_penalty():
+    from sb3_dacerf.envs.driving.multilane import MultilaneEnv
+
+    env = MultilaneEnv(config={"duration": 30, "dynamic_penalty_base": 100.0, "dynamic_penalty_cost_rate": 5.0, "rho_step": 2.0})
+    env.reset(seed=0)
+    assert env.config["collision_penalty"] == "dynamic"  # the default
+    penalties = []
+    for time in (0.1, 10.0, 29.9, 30.0):
+        env.time = time
+        penalties.append(env._severe_penalty())
+    # base + (best reward rate + cost rate) * steps left
+    assert penalties == pytest.approx([100 + 7 * 299, 100 + 7 * 200, 100 + 7 * 1, 100])
+    env.configure({"collision_penalty": 350})
+    assert env._severe_penalty() == 350.0
 
 
 def test_highway_success_at_time_limit():
@@ -430,14 +452,17 @@ def test_subprocess_workers_register_the_ids():
 # simulation, observation or reward shows here. Regenerate (only for an intended change of behaviour) with
 #   PYTHONPATH=. python tests/test_driving_envs.py --write-pinned-episodes
 PINNED_EPISODES_PATH = os.path.join(os.path.dirname(__file__), "data", "driving_episodes.json")
+# The severe-event penalty is set explicitly (the paper's constant): the pins are about determinism, and the default
+# penalty's own tests are test_dynamic_severe_penalty and the collision / off-road tests.
+PINNED_PENALTY = {"collision_penalty": 200.0}
 PINNED_EPISODES = [
     # (env id, density, config overrides, seed, action pattern)
-    ("DACERF-Multilane-v0", "normal", {"duration": 15}, 0, "zero"),
-    ("DACERF-Multilane-v0", "dense", {"duration": 15}, 1, "random"),
-    ("DACERF-Multilane-v0", "sparse", {"duration": 15, "reference_lane": "left"}, 2, "wave"),
-    ("DACERF-Intersection-v0", "normal", {"duration": 20}, 0, "zero"),
-    ("DACERF-Intersection-v0", "dense", {"duration": 20}, 3, "random"),
-    ("DACERF-Intersection-v0", "sparse", {"duration": 20, "routes": ["left"]}, 4, "wave"),
+    ("DACERF-Multilane-v0", "normal", {"duration": 15, **PINNED_PENALTY}, 0, "zero"),
+    ("DACERF-Multilane-v0", "dense", {"duration": 15, **PINNED_PENALTY}, 1, "random"),
+    ("DACERF-Multilane-v0", "sparse", {"duration": 15, "reference_lane": "left", **PINNED_PENALTY}, 2, "wave"),
+    ("DACERF-Intersection-v0", "normal", {"duration": 20, **PINNED_PENALTY}, 0, "zero"),
+    ("DACERF-Intersection-v0", "dense", {"duration": 20, **PINNED_PENALTY}, 3, "random"),
+    ("DACERF-Intersection-v0", "sparse", {"duration": 20, "routes": ["left"], **PINNED_PENALTY}, 4, "wave"),
 ]
 PINNED_OBS_EVERY = 25
 

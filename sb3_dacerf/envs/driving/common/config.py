@@ -113,10 +113,10 @@ def class_path(value: object) -> str | None:
 
 
 def severe_penalty(value: object) -> str | None:
-    """A number >= 0."""
-    if _is_number(value) and value == value and value >= 0:
+    """``"dynamic"`` or a number >= 0."""
+    if value == "dynamic" or (_is_number(value) and value == value and value >= 0):
         return None
-    return "a number >= 0 (the paper's constant is 200)"
+    return "'dynamic' or a number >= 0 (the paper's constant is 200)"
 
 
 COMMON_RULES: dict[str, Rule] = {
@@ -151,6 +151,8 @@ COMMON_RULES: dict[str, Rule] = {
     "safe_space_margin": pair(0.0),
     "boundary_threshold": number(0),
     "collision_penalty": severe_penalty,
+    "dynamic_penalty_base": number(0),
+    "dynamic_penalty_cost_rate": number(0),
     **{
         key: number(0)
         for key in (
