@@ -1,116 +1,200 @@
 """
-Train DACER-F (or SAC, for comparison) on the paper's driving scenarios and report, over deterministic evaluation
-episodes, the paper's metrics: total average return (TAR), arrival rate (``info["is_success"]``: destination
-reached at the intersection, time limit reached safely on the highway) and collision rate.
+Train DACER-F (or SAC, for comparison) on the paper's driving scenarios, print progress (episodes, return, arrival,
+collision and off-road rates) while it trains, and report, over deterministic evaluation episodes, the paper's
+metrics: total average return (TAR), arrival rate (``info["is_success"]``: destination reached at the intersection,
+time limit reached safely on the highway), collision and off-road rates.
 
     python examples/train_driving.py --timesteps 2000 --eval-episodes 5       # short smoke run of both scenarios
-    python examples/train_driving.py --env intersection --timesteps 500000 --density dense --algo sac
+    python examples/train_driving.py --env multilane --timesteps 100000 --n-envs 2 --vec-normalize --save runs/dacerf
+    python examples/train_driving.py --load runs/dacerf_multilane --timesteps 50000 --save runs/dacerf   # resume
+    python examples/evaluate_driving.py runs/dacerf_multilane.zip --episodes 50                        # evaluate
 
-The paper trains 5e5 iterations; hyper-parameters here are its Table II values that DACERF exposes
-(learning rate 1e-4, replay batch 512, γ = 0.99, τ = 0.001, policy delay 3, Langevin η = 0.03, α = 0.01, 20 steps).
+``--save NAME`` writes ``NAME_<scenario>.zip`` (the model), ``NAME_<scenario>.json`` (env id, density, config,
+algorithm: what ``evaluate_driving.py`` and ``--load`` read), ``NAME_<scenario>_vecnormalize.pkl`` with
+``--vec-normalize`` and ``NAME_<scenario>_replay_buffer.pkl`` with ``--save-replay-buffer``. ``--load`` resumes the
+step count, the normalisation statistics and, if saved, the replay buffer (without it, training restarts from an
+empty buffer and waits ``--learning-starts`` steps again).
+
+Hyper-parameters: the paper's Table II values that DACERF exposes (learning rate 1e-4, replay batch 512, γ = 0.99,
+τ = 0.001, policy delay 3, Langevin η = 0.03, α = 0.01, 20 steps); the paper trains 5e5 iterations.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import sys
 import time
+from collections import deque
 
 import gymnasium as gym
 import numpy as np
 import torch
-from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 
-SCENARIOS = {"multilane": "DACERF-Multilane-v0", "intersection": "DACERF-Intersection-v0"}
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths  # noqa: E402
 
 
-def evaluate(model, env: gym.Env, n_episodes: int, seed: int) -> dict[str, float]:
+class DrivingProgress(BaseCallback):
     """
-    Run deterministic evaluation episodes.
-
-    :param model: a trained SB3 model
-    :param env: the evaluation environment
-    :param n_episodes: number of episodes
-    :param seed: seed of the first episode, the next ones use the following seeds
-    :return: total average return, arrival rate, collision rate and mean episode length
+    Print, every ``interval`` environment steps, the training episodes' mean return, arrival, collision and off-road
+    rates and length over the last ``window`` episodes.
     """
-    returns, arrivals, collisions, lengths = [], [], [], []
-    for episode in range(n_episodes):
-        obs, _ = env.reset(seed=seed + episode)
-        done, total, length, info = False, 0.0, 0, {}
-        while not done:
-            action, _ = model.predict(obs, deterministic=True)
-            obs, reward, terminated, truncated, info = env.step(action)
-            total, length, done = total + float(reward), length + 1, terminated or truncated
-        returns.append(total)
-        arrivals.append(info["is_success"])
-        collisions.append(info["collision"])
-        lengths.append(length)
-    return {
-        "tar": float(np.mean(returns)),
-        "tar_std": float(np.std(returns)),
-        "arrival_rate": float(np.mean(arrivals)),
-        "collision_rate": float(np.mean(collisions)),
-        "episode_length": float(np.mean(lengths)),
-    }
+
+    def __init__(self, total: int, interval: int = 1_000, window: int = 20) -> None:
+        super().__init__()
+        self.total, self.interval = total, interval
+        self.episodes = deque(maxlen=window)
+        self.count, self.start, self.next_print = 0, time.perf_counter(), interval
+
+    def _on_training_start(self) -> None:
+        self.first_step, self.start = self.num_timesteps, time.perf_counter()
+
+    def _on_step(self) -> bool:
+        for done, info in zip(self.locals["dones"], self.locals["infos"]):
+            if done and "episode" in info:
+                self.episodes.append(
+                    (info["episode"]["r"], info["episode"]["l"], info["is_success"], info["collision"], info["off_road"])
+                )
+                self.count += 1
+        steps = self.num_timesteps - self.first_step
+        if steps >= self.next_print:
+            self.next_print += self.interval
+            line = f"  {steps}/{self.total} steps, {steps / (time.perf_counter() - self.start):.0f} steps/s"
+            if self.episodes:
+                r, length, arrived, collided, off_road = np.array(self.episodes, dtype=np.float64).T
+                line += (
+                    f", {self.count} episodes; last {len(self.episodes)}: return {r.mean():.0f}, length {length.mean():.0f}, "
+                    f"arrival {arrived.mean():.0%}, collision {collided.mean():.0%}, off-road {off_road.mean():.0%}"
+                )
+            print(line, flush=True)
+        return True
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="all", choices=["all", *SCENARIOS], help="scenario(s) to train on")
-    parser.add_argument("--algo", default="dacerf", choices=["dacerf", "sac"])
-    parser.add_argument("--timesteps", type=int, default=20_000, help="training steps per scenario")
+    parser.add_argument("--env", choices=["all", *SCENARIOS], help="scenario(s) to train on (default: all; with --load its own)")
+    parser.add_argument("--algo", choices=["dacerf", "sac"], help="default: dacerf (with --load: the saved model's)")
+    parser.add_argument("--timesteps", type=int, default=20_000, help="training steps per scenario (more steps with --load)")
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--density", default="normal", choices=["sparse", "normal", "dense"])
+    parser.add_argument("--config", type=json.loads, default={}, help="env config overrides as JSON, e.g. '{\"duration\": 20}'")
     parser.add_argument("--learning-starts", type=int, default=1_000, help="random steps before the first update")
+    parser.add_argument("--batch-size", type=int, default=512, help="replay batch size (the paper's 512)")
+    parser.add_argument("--n-envs", type=int, default=1, help="parallel training envs (SubprocVecEnv when > 1)")
+    parser.add_argument("--vec-normalize", action="store_true", help="normalise observations with VecNormalize (rewards kept)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip")
+    parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip (+ .json, _vecnormalize.pkl)")
+    parser.add_argument("--save-replay-buffer", action="store_true", help="also save the replay buffer (for --load)")
+    parser.add_argument("--load", help="resume training from a model saved with --save (path with or without .zip)")
+    parser.add_argument("--log-interval", type=int, default=1_000, help="print training progress every N steps (0: never)")
     parser.add_argument(
         "--torch-threads",
         type=int,
         default=1,
         help="torch CPU threads (measured here on a loaded 2-core machine: 1 thread was 7-30x faster per update than 2)",
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if args.n_envs < 1:
+        parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
     torch.set_num_threads(args.torch_threads)
 
-    paper_kwargs = {"learning_rate": 1e-4, "batch_size": 512, "gamma": 0.99, "tau": 0.001}
+    load_paths, metadata = None, {}
+    if args.load:
+        load_paths = model_paths(args.load)
+        if not os.path.isfile(load_paths["model"]):
+            parser.error(f"--load: no model file {load_paths['model']!r}; pass the NAME_<scenario>.zip written by --save")
+        if os.path.isfile(load_paths["metadata"]):
+            with open(load_paths["metadata"]) as file:
+                metadata = json.load(file)
+        trained = {v: k for k, v in SCENARIOS.items()}.get(metadata.get("env_id"))
+        if args.env not in (None, trained) or (trained is None and args.env in (None, "all")):
+            parser.error(
+                f"--load: {args.load} was trained on {trained or 'an unknown scenario'}: "
+                f"pass --env {trained or 'multilane or --env intersection'}"
+            )
+        if args.algo and metadata.get("algo", args.algo) != args.algo:
+            parser.error(f"--load: {args.load} is a {metadata['algo']} model: pass --algo {metadata['algo']} or leave it out")
+        args.algo = args.algo or metadata.get("algo")
+        args.env = trained or args.env
+        args.density, args.config = metadata.get("density", args.density), {**metadata.get("config", {}), **args.config}
+        args.vec_normalize = args.vec_normalize or os.path.isfile(load_paths["vec_normalize"])
+
+    args.algo = args.algo or "dacerf"
+    algo_class = load_algorithm(args.algo)
+    paper_kwargs = {"learning_rate": 1e-4, "batch_size": args.batch_size, "gamma": 0.99, "tau": 0.001}
     if args.algo == "dacerf":
-        from sb3_dacerf import DACERF
-
-        algo_class, algo_kwargs = (
-            DACERF,
-            {
-                **paper_kwargs,
-                "policy_delay": 3,
-                "langevin_steps": 20,
-                "langevin_step_size": 0.03,
-                "langevin_temperature": 0.01,
-            },
-        )
+        algo_kwargs = {
+            **paper_kwargs,
+            "policy_delay": 3,
+            "langevin_steps": 20,
+            "langevin_step_size": 0.03,
+            "langevin_temperature": 0.01,
+        }
     else:
-        from stable_baselines3 import SAC
+        algo_kwargs = paper_kwargs
 
-        algo_class, algo_kwargs = SAC, paper_kwargs
-
-    scenarios = SCENARIOS if args.env == "all" else {args.env: SCENARIOS[args.env]}
+    scenarios = SCENARIOS if args.env in (None, "all") else {args.env: SCENARIOS[args.env]}
     for name, env_id in scenarios.items():
-        env = Monitor(gym.make(env_id, density=args.density))
-        model = algo_class("MlpPolicy", env, learning_starts=args.learning_starts, seed=args.seed, verbose=0, **algo_kwargs)
-        start = time.perf_counter()
-        model.learn(args.timesteps)
-        train_seconds = time.perf_counter() - start
-        if args.save:
-            model.save(f"{args.save}_{name}")
-        # Evaluation episodes use seeds the training resets did not (training resets are seeded from --seed).
-        results = evaluate(model, gym.make(env_id, density=args.density), args.eval_episodes, seed=10_000 + args.seed)
-        print(
-            f"{env_id} ({args.density}), {args.algo}, {args.timesteps} steps in {train_seconds:.0f} s "
-            f"({len(env.get_episode_rewards())} training episodes): over {args.eval_episodes} evaluation episodes "
-            f"TAR {results['tar']:.1f} +/- {results['tar_std']:.1f}, arrival rate {results['arrival_rate']:.0%}, "
-            f"collision rate {results['collision_rate']:.0%}, mean length {results['episode_length']:.0f} steps"
+        env_kwargs = {"density": args.density, "config": args.config}
+        # "module:id" makes spawned SubprocVecEnv workers import (and so register) the package.
+        env = make_vec_env(
+            f"sb3_dacerf:{env_id}",
+            n_envs=args.n_envs,
+            seed=args.seed,
+            env_kwargs=env_kwargs,
+            vec_env_cls=SubprocVecEnv if args.n_envs > 1 else DummyVecEnv,
         )
+        if load_paths and os.path.isfile(load_paths["vec_normalize"]):
+            env = VecNormalize.load(load_paths["vec_normalize"], env)
+        elif args.vec_normalize:
+            env = VecNormalize(env, norm_obs=True, norm_reward=False)
+        if load_paths:
+            model = algo_class.load(load_paths["model"], env=env, device="cpu")
+            replay_path = load_paths["model"][:-4] + "_replay_buffer.pkl"
+            if os.path.isfile(replay_path):
+                model.load_replay_buffer(replay_path)
+            print(f"{env_id}: resumed {load_paths['model']} at {model.num_timesteps} steps", flush=True)
+        else:
+            model = algo_class("MlpPolicy", env, learning_starts=args.learning_starts, seed=args.seed, verbose=0, **algo_kwargs)
+        print(
+            f"{env_id} ({args.density}), {args.algo}, training {args.timesteps} steps on {args.n_envs} env(s)"
+            + (", observations normalised" if isinstance(env, VecNormalize) else ""),
+            flush=True,
+        )
+        callback = DrivingProgress(args.timesteps, args.log_interval) if args.log_interval > 0 else None
+        start = time.perf_counter()
+        model.learn(args.timesteps, callback=callback, reset_num_timesteps=load_paths is None)
+        train_seconds = time.perf_counter() - start
+        vec_normalize = env if isinstance(env, VecNormalize) else None
+        if args.save:
+            paths = model_paths(f"{args.save}_{name}")
+            os.makedirs(os.path.dirname(paths["model"]) or ".", exist_ok=True)
+            model.save(paths["model"])
+            with open(paths["metadata"], "w") as file:
+                json.dump({"env_id": env_id, "density": args.density, "config": args.config, "algo": args.algo}, file)
+            if vec_normalize is not None:
+                vec_normalize.save(paths["vec_normalize"])
+            if args.save_replay_buffer:
+                model.save_replay_buffer(paths["model"][:-4] + "_replay_buffer.pkl")
+            print(f"saved {paths['model']}" + (f" and {paths['vec_normalize']}" if vec_normalize is not None else ""), flush=True)
+        if vec_normalize is not None:
+            vec_normalize.training = False
+        # Evaluation episodes use seeds the training resets did not (training resets are seeded from --seed).
+        results = evaluate(
+            model, gym.make(env_id, **env_kwargs), args.eval_episodes, seed=10_000 + args.seed, vec_normalize=vec_normalize
+        )
+        print(
+            f"trained {model.num_timesteps} steps in total, {train_seconds:.0f} s this run; "
+            + format_results(env_id, results, args.eval_episodes)
+        )
+        env.close()
 
 
 if __name__ == "__main__":

@@ -1,0 +1,158 @@
+"""
+Evaluate a trained DACERF (or SAC) driver on the paper's driving scenarios: total average return (TAR), arrival,
+collision and off-road rates and mean episode length over N seeded, deterministic episodes.
+
+    python examples/evaluate_driving.py driving_multilane.zip --episodes 20
+    python examples/evaluate_driving.py model.zip --env intersection --algo sac --vec-normalize stats.pkl
+
+A model saved by ``examples/train_driving.py --save NAME`` comes with ``NAME_<scenario>.json`` (env id, density,
+config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario>_vecnormalize.pkl``: both are
+found next to the model and used, so only the model path is needed. Arrival is ``info["is_success"]``: the
+route's exit reached at the intersection, the time limit reached without collision or leaving the road on the
+highway. Evaluation seeds default to 10,000 + i, which training resets never use.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import gymnasium as gym
+import numpy as np
+
+import sb3_dacerf  # noqa: F401  (registers the environment ids)
+
+SCENARIOS = {"multilane": "DACERF-Multilane-v0", "intersection": "DACERF-Intersection-v0"}
+
+
+def model_paths(model_path: str) -> dict[str, str]:
+    """The files that ``train_driving.py --save`` writes beside a model: metadata JSON and VecNormalize statistics."""
+    stem = model_path[:-4] if model_path.endswith(".zip") else model_path
+    return {"model": stem + ".zip", "metadata": stem + ".json", "vec_normalize": stem + "_vecnormalize.pkl"}
+
+
+def evaluate(model, env: gym.Env, n_episodes: int, seed: int, vec_normalize=None) -> dict[str, float]:
+    """
+    Run deterministic evaluation episodes.
+
+    :param model: a trained SB3 model
+    :param env: the evaluation environment (not normalised)
+    :param n_episodes: number of episodes
+    :param seed: seed of the first episode, the next ones use the following seeds
+    :param vec_normalize: the ``VecNormalize`` whose observation statistics the model was trained with, if any
+    :return: TAR and its spread, arrival / collision / off-road rates and mean episode length
+    """
+    returns, arrivals, collisions, off_road, lengths = [], [], [], [], []
+    for episode in range(n_episodes):
+        obs, _ = env.reset(seed=seed + episode)
+        done, total, length, info = False, 0.0, 0, {}
+        while not done:
+            policy_obs = vec_normalize.normalize_obs(obs) if vec_normalize is not None else obs
+            action, _ = model.predict(policy_obs, deterministic=True)
+            obs, reward, terminated, truncated, info = env.step(action)
+            total, length, done = total + float(reward), length + 1, terminated or truncated
+        returns.append(total)
+        arrivals.append(info["is_success"])
+        collisions.append(info["collision"])
+        off_road.append(info["off_road"])
+        lengths.append(length)
+    return {
+        "tar": float(np.mean(returns)),
+        "tar_std": float(np.std(returns)),
+        "arrival_rate": float(np.mean(arrivals)),
+        "collision_rate": float(np.mean(collisions)),
+        "off_road_rate": float(np.mean(off_road)),
+        "episode_length": float(np.mean(lengths)),
+    }
+
+
+def format_results(env_id: str, results: dict[str, float], n_episodes: int) -> str:
+    return (
+        f"{env_id}: over {n_episodes} episodes TAR {results['tar']:.1f} +/- {results['tar_std']:.1f}, "
+        f"arrival rate {results['arrival_rate']:.0%}, collision rate {results['collision_rate']:.0%}, "
+        f"off-road rate {results['off_road_rate']:.0%}, mean length {results['episode_length']:.0f} steps"
+    )
+
+
+def load_algorithm(algo: str):
+    if algo == "dacerf":
+        from sb3_dacerf import DACERF
+
+        return DACERF
+    from stable_baselines3 import SAC
+
+    return SAC
+
+
+def main(argv: list[str] | None = None) -> dict[str, float]:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("model", help="the model .zip (the .zip suffix may be left out)")
+    parser.add_argument("--env", choices=list(SCENARIOS), help="scenario (default: the one the model was trained on)")
+    parser.add_argument("--algo", choices=["dacerf", "sac"], help="model class (default: from the metadata, else dacerf)")
+    parser.add_argument("--vec-normalize", help="VecNormalize statistics .pkl (default: the one saved beside the model)")
+    parser.add_argument("--density", choices=["sparse", "normal", "dense"], help="traffic density (default: as trained)")
+    parser.add_argument("--config", type=json.loads, help="env config overrides as JSON, e.g. '{\"duration\": 20}'")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
+    parser.add_argument("--force", action="store_true", help="evaluate on another scenario than the model was trained on")
+    args = parser.parse_args(argv)
+
+    paths = model_paths(args.model)
+    if not os.path.isfile(paths["model"]):
+        sys.exit(f"error: no model file {paths['model']!r}: pass the .zip written by train_driving.py --save (or model.save())")
+    metadata = {}
+    if os.path.isfile(paths["metadata"]):
+        with open(paths["metadata"]) as file:
+            metadata = json.load(file)
+    trained_env = metadata.get("env_id")
+    env_id = SCENARIOS[args.env] if args.env else trained_env
+    if env_id is None:
+        sys.exit(
+            f"error: {paths['metadata']!r} not found, so the scenario is unknown: pass --env multilane or --env intersection"
+        )
+    if trained_env and env_id != trained_env and not args.force:
+        sys.exit(
+            f"error: the model was trained on {trained_env} (per {paths['metadata']}), not {env_id}: "
+            f"leave out --env, or add --force to evaluate it on another scenario"
+        )
+    density = args.density or metadata.get("density", "normal")
+    config = {**metadata.get("config", {}), **(args.config or {})}
+    env = gym.make(env_id, density=density, config=config)
+
+    algo_class = load_algorithm(args.algo or metadata.get("algo", "dacerf"))
+    try:
+        model = algo_class.load(paths["model"], device="cpu")
+    except Exception as error:  # SB3 raises various errors for a file of another class or a corrupt file
+        sys.exit(f"error: cannot load {paths['model']!r} as {algo_class.__name__} ({error}): check --algo (dacerf or sac)")
+    for name in ("observation_space", "action_space"):
+        if getattr(model, name).shape != getattr(env, name).shape:
+            sys.exit(
+                f"error: the model's {name} has shape {getattr(model, name).shape}, {env_id} with this config has "
+                f"{getattr(env, name).shape}: evaluate on the scenario and config the model was trained with"
+            )
+
+    vec_normalize = None
+    stats = args.vec_normalize or (paths["vec_normalize"] if os.path.isfile(paths["vec_normalize"]) else None)
+    if args.vec_normalize and not os.path.isfile(args.vec_normalize):
+        sys.exit(f"error: no VecNormalize statistics file {args.vec_normalize!r}: pass the .pkl saved with the model")
+    if stats:
+        from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+        vec_normalize = VecNormalize.load(stats, DummyVecEnv([lambda: gym.make(env_id, density=density, config=config)]))
+        vec_normalize.training = False
+        if vec_normalize.observation_space.shape != env.observation_space.shape:
+            sys.exit(f"error: the statistics in {stats!r} are for observations of another shape: pass the model's own .pkl")
+    print(
+        f"{algo_class.__name__} from {paths['model']}"
+        + (f", observations normalised with {stats}" if stats else "")
+        + f"; {env_id} ({density}), seeds {args.seed}-{args.seed + args.episodes - 1}, deterministic actions"
+    )
+    results = evaluate(model, env, args.episodes, args.seed, vec_normalize)
+    print(format_results(env_id, results, args.episodes))
+    return results
+
+
+if __name__ == "__main__":
+    main()
