@@ -5,8 +5,11 @@ The paper's two driving scenarios on highway-env (extra ``driving``: ``pip insta
 - ``DACERF-Intersection-v0``: urban intersection (:class:`sb3_dacerf.envs.driving.intersection.IntersectionEnv`).
 
 ``gym.make`` kwargs: ``density="sparse" | "normal" | "dense"``, ``render_mode`` (``"rgb_array"`` renders
-offscreen) and ``config`` (a dict of overrides of the env's ``default_config()``). Observation, action
-and reward are described in :mod:`sb3_dacerf.envs.driving.common`.
+offscreen) and ``config`` (a dict of overrides of the env's ``default_config()``; every value is checked by type
+and range there). Observation, action and reward are described in :mod:`sb3_dacerf.envs.driving.common`; the
+severe-event penalty is by default the paper's "dynamically calculated" one (``collision_penalty="dynamic"``, see
+:mod:`sb3_dacerf.envs.driving.common.reward`), ``config={"collision_penalty": 200}`` selects the paper's constant.
+:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver` is a scripted baseline driver.
 
 Importing this package registers the ids (``import sb3_dacerf`` does) without importing highway-env:
 registration records ids and entry points only.
