@@ -2,6 +2,11 @@
 RL Zoo integration: ``python -m rl_zoo3.train --algo dacerf --env <id>`` (and ``enjoy``, ``record_video``,
 ``--optimize``) with no wrapper script and no ``--conf-file``.
 
+With a database ``--storage`` (``postgresql://...``), ``-optimize`` studies get Optuna's trial heartbeat (every
+``SB3_DACERF_OPTUNA_HEARTBEAT`` seconds, 60 by default, 0 for none): a trial whose worker was killed is marked FAIL
+by the next worker that starts a trial, instead of staying RUNNING forever; and workers started at the same moment
+on a new database no longer fail creating Optuna's tables.
+
 RL Zoo fixes its ``--algo`` choices from ``rl_zoo3.utils.ALGOS`` before it imports ``--gym-packages``, so DACERF
 has to be there earlier: the start-up hook ``sb3_dacerf_zoo_hook`` (installed by ``pip install .``) calls
 :func:`register` on ``rl_zoo3.utils``, ``rl_zoo3.hyperparams_opt`` and ``rl_zoo3.exp_manager`` as soon as each is
@@ -11,10 +16,15 @@ name in place of ``train``) registers DACERF and runs the script.
 This module is imported only together with RL Zoo: it imports torch, Stable-Baselines3 and DACERF.
 """
 
+import contextlib
 import functools
 import inspect
+import os
+import random
 import runpy
 import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -110,6 +120,72 @@ def default_config(algo: str, env_id: str) -> str | None:
     return None
 
 
+#: Environment variable: seconds between the heartbeats of a trial in a database study (0: no heartbeat)
+HEARTBEAT_VARIABLE = "SB3_DACERF_OPTUNA_HEARTBEAT"
+DEFAULT_HEARTBEAT_INTERVAL = 60
+
+
+def heartbeat_interval() -> int:
+    """Seconds between two heartbeats of a running trial (``SB3_DACERF_OPTUNA_HEARTBEAT``, 60 by default; 0: off)."""
+    value = os.environ.get(HEARTBEAT_VARIABLE, str(DEFAULT_HEARTBEAT_INTERVAL))
+    try:
+        interval = int(value)
+    except ValueError:
+        interval = -1
+    if interval < 0:
+        raise ValueError(f"{HEARTBEAT_VARIABLE}={value!r}: give a whole number of seconds (0 turns the heartbeat off).")
+    return interval
+
+
+def is_database_url(storage: object) -> bool:
+    """Whether RL Zoo hands ``--storage`` to Optuna as a database URL (``postgresql://...``, ``mysql://...``, ``sqlite:///...``)."""
+    return isinstance(storage, str) and "://" in storage and not storage.endswith(".log")
+
+
+def database_storage(url: str, interval: int, attempts: int = 5) -> optuna.storages.RDBStorage:
+    """
+    Optuna's storage on a database URL, with the trial heartbeat every ``interval`` seconds (0: none).
+
+    Workers started at the same moment on a new database race to create Optuna's tables, and all but one fail
+    (``duplicate key value violates unique constraint``): the storage is opened again after a short random pause,
+    when the tables exist.
+    """
+    import sqlalchemy.exc
+
+    for attempt in range(attempts):
+        try:
+            return optuna.storages.RDBStorage(url, heartbeat_interval=interval or None)
+        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
+            if attempt == attempts - 1:
+                raise
+            time.sleep(random.uniform(0.5, 2.0))
+    raise AssertionError("unreachable")
+
+
+@contextlib.contextmanager
+def database_studies(interval: int) -> Iterator[None]:
+    """
+    Inside the block, a study that ``optuna.create_study`` opens on a database URL goes through
+    :func:`database_storage`: workers started together on a new database do not fail, and with ``interval > 0`` every
+    running trial records a heartbeat each ``interval`` seconds; whenever a worker starts a trial, trials whose
+    heartbeat stopped for ``2 * interval`` seconds (a worker killed or its machine lost) are marked FAIL instead of
+    staying RUNNING forever (and counting against ``--max-total-trials``).
+    """
+    create_study = optuna.create_study
+
+    @functools.wraps(create_study)
+    def create_study_on_database(*args: Any, storage: Any = None, **kwargs: Any) -> optuna.Study:
+        if is_database_url(storage):
+            storage = database_storage(storage, interval)
+        return create_study(*args, storage=storage, **kwargs)
+
+    optuna.create_study = create_study_on_database
+    try:
+        yield
+    finally:
+        optuna.create_study = create_study
+
+
 def _patch_experiment_manager(cls: type) -> None:
     if getattr(cls, "_sb3_dacerf_patched", False):
         return
@@ -132,7 +208,11 @@ def _patch_experiment_manager(cls: type) -> None:
             HYPERPARAMS_SAMPLER["dacerf"] = functools.partial(
                 sample_dacerf_params, policy_kwargs=self._hyperparams.get("policy_kwargs")
             )
-        optimize(self)
+        if not is_database_url(self.storage):
+            optimize(self)
+            return
+        with database_studies(heartbeat_interval()):
+            optimize(self)
 
     cls.__init__ = __init__
     cls.hyperparameters_optimization = hyperparameters_optimization

@@ -232,3 +232,41 @@ def test_optimize_two_workers_share_one_study(tmp_path):
         "flow_matching_weights",
         "critic_layer_norm",
     }
+
+
+NAN_ENV_MODULE = """
+import gymnasium as gym
+
+
+class NanRewardPendulum(gym.Wrapper):
+    def __init__(self):
+        super().__init__(gym.make("Pendulum-v1"))
+
+    def step(self, action):
+        observation, _, terminated, truncated, info = self.env.step(action)
+        return observation, float("nan"), terminated, truncated, info
+
+
+gym.register("NanRewardPendulum-v0", entry_point=NanRewardPendulum)
+"""
+
+
+def test_optimize_prunes_a_trial_whose_loss_is_not_finite_and_goes_on(tmp_path):
+    # RL Zoo prunes trials that raise ValueError or AssertionError; any other error stops the whole study
+    (tmp_path / "nan_env.py").write_text(NAN_ENV_MODULE)
+    (tmp_path / "nan.yml").write_text("NanRewardPendulum-v0:\n  policy: MlpPolicy\n  n_timesteps: 60\n  learning_starts: 50\n")
+    command, env = zoo_command(
+        "train",
+        *["--algo", "dacerf", "--env", "NanRewardPendulum-v0", "--gym-packages", "nan_env", "--conf-file", "nan.yml"],
+        *["--num-threads", "1", "--optimize", "--n-trials", "2", "--n-evaluations", "1", "--eval-episodes", "1"],
+        *["--storage", "study.log", "--study-name", "nan", "--sampler", "random", "--pruner", "none", "--no-optim-plots"],
+        *["-f", "logs", "-params", "policy_kwargs:dict(optimizer_class='RAD')"],
+    )
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(tmp_path), env.get("PYTHONPATH")]))
+    result = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    output = result.stdout + result.stderr
+    assert "non-finite critic loss" in output and "the replay buffer holds non-finite rewards" in output, output[-3000:]
+    # both trials ran and were pruned: the study is not stopped by the first one (RL Zoo then fails on "no best trial")
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(tmp_path / "study.log")))
+    study = optuna.load_study(study_name="nan", storage=storage)
+    assert [trial.state for trial in study.trials] == [optuna.trial.TrialState.PRUNED] * 2, output[-3000:]
