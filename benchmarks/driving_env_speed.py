@@ -3,7 +3,7 @@ Environment steps per second of the driving scenarios, beside highway-env's own 
 
 For each scenario, in one process, interleaved in rounds (so that machine load hits all alike), with the
 same constant action (zero acceleration / increments, zero steering) at the same policy frequency (10 Hz),
-timing ``env.step`` only (resets are not timed):
+timing ``env.step`` only (resets are not timed), in CPU time of the process by default (``--clock wall`` for wall-clock):
 
 - ``highway-env default``: highway-env's ``highway-v0`` / ``intersection-v0`` with ``ContinuousAction`` and
   ``policy_frequency`` 10, otherwise its defaults (50 vehicles at 15 Hz physics on the highway). This shows
@@ -115,19 +115,20 @@ class NoLayerIntersectionEnv(NoLayerMixin, StockLayerIntersectionEnv):
         return super()._is_terminated() or self._has_exited()
 
 
-def time_steps(env: gym.Env, steps: int, seed: int) -> float:
+def time_steps(env: gym.Env, steps: int, seed: int, clock=time.process_time) -> float:
     """
     :param env: the environment, reset before the first call
     :param steps: number of steps to time
     :param seed: seed of the resets after episode ends
+    :param clock: ``time.process_time`` (CPU time of this process) or ``time.perf_counter`` (wall-clock)
     :return: seconds spent in ``env.step``
     """
     action = np.zeros(env.action_space.shape, dtype=np.float32)
     elapsed = 0.0
     for i in range(steps):
-        start = time.perf_counter()
+        start = clock()
         _, _, terminated, truncated, _ = env.step(action)
-        elapsed += time.perf_counter() - start
+        elapsed += clock() - start
         if terminated or truncated:
             env.reset(seed=seed + i)
     return elapsed
@@ -138,6 +139,13 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100, help="steps per environment and round")
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--density", default="normal", choices=["sparse", "normal", "dense"])
+    parser.add_argument(
+        "--clock",
+        default="cpu",
+        choices=["cpu", "wall"],
+        help="cpu: this process's CPU time (time.process_time), which other processes on a shared machine move far less "
+        "than wall-clock time; wall: time.perf_counter",
+    )
     parser.add_argument("--quick", action="store_true", help="a short check: 50 steps x 4 rounds")
     args = parser.parse_args()
     if args.quick:
@@ -158,17 +166,19 @@ def main() -> None:
             "ours (DACERF-Intersection-v0)": lambda: IntersectionEnv(density=args.density),
         },
     }
+    clock = time.process_time if args.clock == "cpu" else time.perf_counter
     envs = {(scenario, name): make() for scenario, makers in scenarios.items() for name, make in makers.items()}
     for env in envs.values():
         env.reset(seed=0)
     elapsed = dict.fromkeys(envs, 0.0)
     for round_ in range(args.rounds):
         for key, env in envs.items():
-            elapsed[key] += time_steps(env, args.steps, seed=1000 * round_)
+            elapsed[key] += time_steps(env, args.steps, seed=1000 * round_, clock=clock)
 
     total_steps = args.steps * args.rounds
     print(
         f"density={args.density}, {total_steps} steps per environment, {args.rounds} interleaved rounds, policy 10 Hz, "
+        f"{'CPU' if args.clock == 'cpu' else 'wall-clock'} time, "
         f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"
     )
     for scenario, makers in scenarios.items():

@@ -92,7 +92,8 @@ def reward_terms(
             gap = max(float(gap_long[ahead].min()), 0.0)
             safe_front = config["rho_front"] * (1 - math.tanh(gap / (max(v_x, 1e-3) * config["safe_time_headway"])))
         margin_long, margin_lat = config["safe_space_margin"]
-        intrusion = np.clip(np.minimum(1 - gap_long / margin_long, 1 - gap_lat / margin_lat), 0.0, 1.0)
+        # np.minimum / np.maximum: the same values as np.clip at a fraction of its per-call cost on short arrays
+        intrusion = np.minimum(np.maximum(np.minimum(1 - gap_long / margin_long, 1 - gap_lat / margin_lat), 0.0), 1.0)
         if intrusion.any():
             safe_space = config["rho_space"] * float(intrusion.sum())
             safe_side = config["rho_side"] * float(intrusion[gap_long <= 0].sum())
