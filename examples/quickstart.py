@@ -1,7 +1,7 @@
 """
 Train DACER-F on Pendulum-v1, evaluate it, save/load it, and plot its learning curve.
 
-    python examples/quickstart.py                 # 10k steps, ~2-3 minutes on 2 CPU cores
+    python examples/quickstart.py                 # 10k steps, about 6 minutes of one CPU core (one torch thread)
     python examples/quickstart.py --timesteps 20000 --out dacerf_quickstart.png
 """
 
