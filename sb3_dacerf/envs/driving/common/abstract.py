@@ -188,7 +188,8 @@ class PaperDrivingMixin:
 
         :param action: ``[Δa_x, Δδ]``, shape (2,); values beyond the action space's bounds are clipped to them
         :raises ValueError: an action of another shape, or with NaN / infinite values
-        :raises gymnasium.error.ResetNeeded: ``step()`` before the first ``reset()``
+        :raises gymnasium.error.ResetNeeded: ``step()`` on an env without a scene (``gym.make``'s ``OrderEnforcing``
+            already raises it before the first ``reset()``)
         """
         if self.road is None or self.vehicle is None:
             raise ResetNeeded("Cannot call step() before reset(): call env.reset(seed=...) first")
