@@ -517,12 +517,17 @@ def test_pinned_episodes_are_unchanged():
         assert actual["flags"] == expected["record"]["flags"], spec
         assert actual["vehicles"] == expected["record"]["vehicles"], spec
         np.testing.assert_allclose(actual["rewards"], expected["record"]["rewards"], rtol=1e-9, atol=1e-9, err_msg=str(spec))
+        # Observations: rewards, flags and vehicle counts agree exactly between CPUs, but the traffic's floating point
+        # does not always. The same code and seeds recorded on CPUs with and without AVX-512 differ in the dense
+        # intersection episode from step 139 on, where one far vehicle's trajectory drifts: by up to 1.7e-3 in an
+        # observation entry and 8.2e-3 in a checksum (every other episode to 1.5e-14). The tolerances below
+        # are six times those, far below what any change of the observation or of the simulation moves.
         np.testing.assert_allclose(
-            actual["obs_checksums"], expected["record"]["obs_checksums"], rtol=1e-7, atol=1e-6, err_msg=str(spec)
+            actual["obs_checksums"], expected["record"]["obs_checksums"], rtol=1e-7, atol=5e-2, err_msg=str(spec)
         )
         assert actual["observations"].keys() == expected["record"]["observations"].keys()
         for step, obs in expected["record"]["observations"].items():
-            np.testing.assert_allclose(actual["observations"][step], obs, rtol=1e-6, atol=1e-6, err_msg=f"{spec} step {step}")
+            np.testing.assert_allclose(actual["observations"][step], obs, rtol=1e-6, atol=1e-2, err_msg=f"{spec} step {step}")
         for name, value in expected["record"]["reward_terms"].items():
             assert actual["reward_terms"][name] == pytest.approx(value, rel=1e-9, abs=1e-9), (spec, name)
 
