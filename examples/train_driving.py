@@ -15,8 +15,10 @@ algorithm: what ``evaluate_driving.py`` and ``--load`` read), ``NAME_<scenario>_
 step count, the normalisation statistics and, if saved, the replay buffer (without it, training restarts from an
 empty buffer and waits ``--learning-starts`` steps again).
 
-Hyper-parameters: the paper's Table II values that DACERF exposes (learning rate 1e-4, replay batch 512, γ = 0.99,
-τ = 0.001, policy delay 3, Langevin η = 0.03, α = 0.01, 20 steps); the paper trains 5e5 iterations.
+Hyper-parameters: the algorithm's constructor defaults (for DACERF those of benchmarks/learning.md: entropy
+regulator on, actor loss weighted by the Langevin gain, lr 3e-4, batch 256, τ = 0.005); ``--paper`` selects the
+paper's Table II values (learning rate 1e-4, replay batch 512, RAD, γ = 0.99, τ = 0.001, policy delay 3, Langevin
+η = 0.03, α = 0.01, 20 steps, no added exploration noise). The paper trains 5e5 iterations.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
+from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths  # noqa: E402
@@ -86,7 +89,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--density", default="normal", choices=["sparse", "normal", "dense"])
     parser.add_argument("--config", type=json.loads, default={}, help="env config overrides as JSON, e.g. '{\"duration\": 20}'")
     parser.add_argument("--learning-starts", type=int, default=1_000, help="random steps before the first update")
-    parser.add_argument("--batch-size", type=int, default=512, help="replay batch size (the paper's 512)")
+    parser.add_argument("--batch-size", type=int, help="replay batch size (default: the algorithm's, 256; the paper's 512)")
+    parser.add_argument(
+        "--paper",
+        action="store_true",
+        help="the paper's training hyper-parameters (sb3_dacerf.dacerf.PAPER_HYPERPARAMETERS: lr 1e-4, batch 512, RAD, "
+        "tau 0.001, no added exploration noise; SAC gets the same lr, batch and tau) instead of the constructor defaults",
+    )
     parser.add_argument("--n-envs", type=int, default=1, help="parallel training envs (SubprocVecEnv when > 1)")
     parser.add_argument("--vec-normalize", action="store_true", help="normalise observations with VecNormalize (rewards kept)")
     parser.add_argument("--seed", type=int, default=0)
@@ -128,17 +137,14 @@ def main(argv: list[str] | None = None) -> None:
 
     args.algo = args.algo or "dacerf"
     algo_class = load_algorithm(args.algo)
-    paper_kwargs = {"learning_rate": 1e-4, "batch_size": args.batch_size, "gamma": 0.99, "tau": 0.001}
-    if args.algo == "dacerf":
-        algo_kwargs = {
-            **paper_kwargs,
-            "policy_delay": 3,
-            "langevin_steps": 20,
-            "langevin_step_size": 0.03,
-            "langevin_temperature": 0.01,
-        }
-    else:
-        algo_kwargs = paper_kwargs
+    # The constructor defaults (benchmarks/learning.md), or the paper's Table II values with --paper
+    algo_kwargs: dict = {}
+    if args.paper:
+        algo_kwargs = (
+            dict(PAPER_HYPERPARAMETERS) if args.algo == "dacerf" else dict(learning_rate=1e-4, batch_size=512, tau=0.001)
+        )
+    if args.batch_size is not None:
+        algo_kwargs["batch_size"] = args.batch_size
 
     scenarios = SCENARIOS if args.env in (None, "all") else {args.env: SCENARIOS[args.env]}
     for name, env_id in scenarios.items():
