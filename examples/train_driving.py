@@ -140,9 +140,8 @@ def main(argv: list[str] | None = None) -> None:
     # The constructor defaults (benchmarks/learning.md), or the paper's Table II values with --paper
     algo_kwargs: dict = {}
     if args.paper:
-        algo_kwargs = (
-            dict(PAPER_HYPERPARAMETERS) if args.algo == "dacerf" else dict(learning_rate=1e-4, batch_size=512, tau=0.001)
-        )
+        shared = ("learning_rate", "batch_size", "tau")  # what SAC takes of the paper's settings
+        algo_kwargs = {k: v for k, v in PAPER_HYPERPARAMETERS.items() if args.algo == "dacerf" or k in shared}
     if args.batch_size is not None:
         algo_kwargs["batch_size"] = args.batch_size
 
