@@ -1,10 +1,13 @@
 """
-Export a DACER-F policy to ONNX or TorchScript for deployment without Python, SB3 or this package.
+Export a DACER-F or DACER policy to ONNX or TorchScript for deployment without Python, SB3 or this package.
 
 The exported graph takes the raw observation (SB3's preprocessing inside: image scaling, one-hot encoding,
 Dict features extraction, and optionally VecNormalize's observation normalisation) and returns the action
-in the environment's units, as ``model.predict`` does. The flow's starting point ``a0`` is an optional second
-input: left out, it is 0 (``deterministic=True``); given ``a0 ~ N(0, I)``, the policy samples stochastically.
+in the environment's units, as ``model.predict`` does. The generator's noise is an optional second input: left out,
+it is 0 (``deterministic=True``); given standard normal noise, the policy samples stochastically (without the
+exploration noise of rollouts). DACER-F's noise ``a0`` is the flow's starting point, ``(batch, action_dim)``; DACER's
+``noise``, ``(batch, n_diffusion_steps, action_dim)``, holds the start and the posterior noise of each reverse step
+(:class:`sb3_dacerf.dacer.policies.DiffusionActor`). Either may have a batch of 1, shared by all the observations.
 
     python -m sb3_dacerf.export MODEL.zip --format onnx --out policy.onnx
     python -m sb3_dacerf.export MODEL.zip --format torchscript --vec-normalize vecnormalize.pkl
@@ -14,7 +17,9 @@ import argparse
 import copy
 import pickle
 import warnings
+from abc import ABC, abstractmethod
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch as th
@@ -24,53 +29,40 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
+from sb3_dacerf.common.policies import GenerativeActor
+from sb3_dacerf.common.twin_critic import saved_policy_class
 from sb3_dacerf.common.utils import atomic_path
+from sb3_dacerf.dacer.dacer import DACER
+from sb3_dacerf.dacer.policies import DACERPolicy, DiffusionActor
 from sb3_dacerf.dacerf.dacerf import DACERF
-from sb3_dacerf.dacerf.policies import VelocityField
+from sb3_dacerf.dacerf.policies import FlowActor
 
 EXPORT_FORMATS = ("onnx", "torchscript")
 # Observation spaces that SB3's ``preprocess_obs`` handles with traceable tensor operations
 SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
 
 
-class ExportablePolicy(nn.Module):
+class ExportablePolicy(nn.Module, ABC):
     """
-    The deployment graph of a DACER-F actor, on a CPU copy of it:
-    ``action = low + (clip(Euler_N(a0; s), -1, 1) + 1) / 2 * (high - low)`` with ``s`` the raw observation,
-    normalised as VecNormalize does when its statistics are given, then preprocessed as by ``model.predict``.
-    It computes what ``VelocityField.sample`` does, up to float rounding, with the velocity network's first
-    layer split by input for a smaller graph.
+    The deployment graph of a generative actor, on a CPU copy of it: ``action = low + (a + 1) / 2 * (high - low)``,
+    ``a = clip(generate(features(s), noise), -1, 1)`` with ``s`` the raw observation, normalised as VecNormalize
+    does when its statistics are given, then preprocessed as by ``model.predict``. Subclasses write ``generate``
+    for their actor: :class:`ExportableFlowPolicy` (DACERF), :class:`ExportableDiffusionPolicy` (DACER);
+    :func:`exportable_policy` picks the one of an actor.
 
-    :param actor: The flow actor (``model.actor``)
-    :param n_sampling_steps: Number of Euler steps, fixed in the graph (the actor's ``n_sampling_steps`` by default)
+    :param actor: The actor (``model.actor``)
     :param vec_normalize: VecNormalize wrapper the model was trained with:
         its observation normalisation is baked into the graph; rewards play no part in acting
     """
 
-    def __init__(self, actor: VelocityField, n_sampling_steps: int | None = None, vec_normalize: VecNormalize | None = None):
+    #: Name of the noise input of ONNX graphs (and of the second argument of TorchScript ones)
+    noise_name: ClassVar[str]
+
+    def __init__(self, actor: GenerativeActor, vec_normalize: VecNormalize | None = None):
         super().__init__()
         # A copy, so that exporting neither moves nor switches the mode of the model being trained
         self.actor = copy.deepcopy(actor).cpu().requires_grad_(False)
         self.actor.set_training_mode(False)
-        self.n_sampling_steps = actor.n_sampling_steps if n_sampling_steps is None else n_sampling_steps
-        if isinstance(self.n_sampling_steps, bool) or not isinstance(self.n_sampling_steps, int) or self.n_sampling_steps < 1:
-            raise ValueError(f"n_sampling_steps must be an integer >= 1, got {self.n_sampling_steps!r}")
-        step = 1.0 / self.n_sampling_steps
-        # Euler steps a <- a + v / N: the last layer is scaled by 1 / N so that the network outputs the step itself
-        last_layer = self.actor.velocity_net[-1]
-        last_layer.weight.mul_(step)
-        last_layer.bias.mul_(step)
-        # The first layer, split by input ([features, actions, time]): the state term is one Gemm, the time term a
-        # constant, and a (1, action_dim) a0 broadcasts over the batch; without a0 (= 0) the action term is left out
-        first_layer = self.actor.velocity_net[0]
-        state_weight, action_weight, time_weight = first_layer.weight.split(
-            [self.actor.features_dim, self.actor.action_dim, 1], 1
-        )
-        self.register_buffer("state_weight", state_weight.t().contiguous())
-        self.register_buffer("action_weight", action_weight.contiguous())
-        self.register_buffer("time_weight", time_weight[:, 0].contiguous())
-        self.register_buffer("first_bias", first_layer.bias.clone())
-        self.velocity_tail = self.actor.velocity_net[1:]
         # SB3's unscaling low + 0.5 (a + 1) (high - low), as one multiply-add
         low, high = actor.action_space.low.astype(np.float64), actor.action_space.high.astype(np.float64)
         self.register_buffer("action_center", th.as_tensor((high + low) / 2, dtype=th.float32))
@@ -91,14 +83,29 @@ class ExportablePolicy(nn.Module):
                 self.normalized_keys.append(key)
             self.clip_obs = float(vec_normalize.clip_obs)
 
+    @property
+    def default_noise_shape(self) -> tuple[int, ...]:
+        """Shape of the noise input's default value (zeros): a batch of 1, broadcast over the observations."""
+        return (1, *self.actor.noise_shape)
+
     def _normalize(self, obs: th.Tensor, key: str) -> th.Tensor:
         mean, std = getattr(self, f"obs_mean_{key}"), getattr(self, f"obs_std_{key}")
         return ((obs.double() - mean) / std).clamp(-self.clip_obs, self.clip_obs)
 
-    def forward(self, obs: PyTorchObs, a0: th.Tensor | None = None) -> th.Tensor:
+    @abstractmethod
+    def generate(self, features: th.Tensor, noise: th.Tensor | None) -> th.Tensor:
+        """
+        What ``actor.sample(features, noise)`` computes, up to float rounding, written for a small traced graph.
+
+        :param features: State features ``(batch, features_dim)``
+        :param noise: ``(batch or 1, *actor.noise_shape)``; ``None`` for zeros (the deterministic action)
+        :return: Actions in [-1, 1] (before the final clipping)
+        """
+
+    def forward(self, obs: PyTorchObs, noise: th.Tensor | None = None) -> th.Tensor:
         """
         :param obs: Raw observations ``(batch, *obs_shape)``, or a dict of them for a Dict observation space
-        :param a0: Starting points of the flow ``(batch, action_dim)``, or ``(1, action_dim)`` for all the batch;
+        :param noise: The generator's noise ``(batch, *actor.noise_shape)``, or with a batch of 1 for all the batch;
             ``None`` for 0, the deterministic action
         :return: Actions in the environment's units ``(batch, action_dim)``
         """
@@ -107,15 +114,132 @@ class ExportablePolicy(nn.Module):
         elif self.normalized_keys:
             obs = self._normalize(obs, "obs")
         features = self.actor.extract_features(obs, self.actor.features_extractor)
-        # The Euler steps of VelocityField.sample from t = 0, unrolled (their number is fixed in the graph)
-        actions = a0
+        actions = self.generate(features, noise)
+        return th.addcmul(self.action_center, self.action_half_range, actions.clamp(-1.0, 1.0))
+
+
+class ExportableFlowPolicy(ExportablePolicy):
+    """
+    The deployment graph of a DACER-F actor: the ``n_sampling_steps`` Euler steps of ``FlowActor.sample`` from
+    ``a0``, unrolled, with the velocity network's first layer split by input for a smaller graph.
+
+    :param actor: The flow actor (``model.actor``)
+    :param n_sampling_steps: Number of Euler steps, fixed in the graph (the actor's ``n_sampling_steps`` by default)
+    :param vec_normalize: VecNormalize wrapper the model was trained with (see :class:`ExportablePolicy`)
+    """
+
+    noise_name = "a0"
+
+    def __init__(self, actor: FlowActor, n_sampling_steps: int | None = None, vec_normalize: VecNormalize | None = None):
+        super().__init__(actor, vec_normalize)
+        self.n_sampling_steps = actor.n_sampling_steps if n_sampling_steps is None else n_sampling_steps
+        if isinstance(self.n_sampling_steps, bool) or not isinstance(self.n_sampling_steps, int) or self.n_sampling_steps < 1:
+            raise ValueError(f"n_sampling_steps must be an integer >= 1, got {self.n_sampling_steps!r}")
+        step = 1.0 / self.n_sampling_steps
+        # Euler steps a <- a + v / N: the last layer is scaled by 1 / N so that the network outputs the step itself
+        last_layer = self.actor.network[-1]
+        last_layer.weight.mul_(step)
+        last_layer.bias.mul_(step)
+        # The first layer, split by input ([features, actions, time]): the state term is one Gemm, the time term a
+        # constant, and a (1, action_dim) a0 broadcasts over the batch; without a0 (= 0) the action term is left out
+        first_layer = self.actor.network[0]
+        state_weight, action_weight, time_weight = first_layer.weight.split(
+            [self.actor.features_dim, self.actor.action_dim, 1], 1
+        )
+        self.register_buffer("state_weight", state_weight.t().contiguous())
+        self.register_buffer("action_weight", action_weight.contiguous())
+        self.register_buffer("time_weight", time_weight[:, 0].contiguous())
+        self.register_buffer("first_bias", first_layer.bias.clone())
+        self.velocity_tail = self.actor.network[1:]
+
+    def generate(self, features: th.Tensor, noise: th.Tensor | None) -> th.Tensor:
+        # The Euler steps of FlowActor.sample from t = 0, unrolled (their number is fixed in the graph)
+        actions = noise
         for k in range(self.n_sampling_steps):
             bias = self.first_bias if k == 0 else self.first_bias + (k / self.n_sampling_steps) * self.time_weight
             if actions is not None:
                 bias = nn.functional.linear(actions, self.action_weight, bias)
             euler_step = self.velocity_tail(th.addmm(bias, features, self.state_weight))
             actions = euler_step if actions is None else actions + euler_step
-        return th.addcmul(self.action_center, self.action_half_range, actions.clamp(-1.0, 1.0))
+        assert actions is not None  # n_sampling_steps >= 1
+        return actions
+
+
+class ExportableDiffusionPolicy(ExportablePolicy):
+    """
+    The deployment graph of a DACER actor: the ``n_diffusion_steps`` reverse steps of ``DiffusionActor.sample``,
+    unrolled, with the time embeddings computed once (constants of the graph) and the noise-prediction network's
+    first layer split by input. The number of steps is that of the noise schedule the model was trained with.
+
+    :param actor: The diffusion actor (``model.actor``)
+    :param vec_normalize: VecNormalize wrapper the model was trained with (see :class:`ExportablePolicy`)
+    """
+
+    noise_name = "noise"
+
+    def __init__(self, actor: DiffusionActor, vec_normalize: VecNormalize | None = None):
+        super().__init__(actor, vec_normalize)
+        self.reverse_coefficients = list(self.actor.reverse_coefficients)
+        first_layer = self.actor.network[0]
+        state_weight, action_weight, time_weight = first_layer.weight.split(
+            [self.actor.features_dim, self.actor.action_dim, self.actor.time_embedding_dim], 1
+        )
+        self.register_buffer("state_weight", state_weight.t().contiguous())
+        self.register_buffer("action_weight", action_weight.contiguous())
+        with th.no_grad():
+            # The time term of the first layer at each step t, with its bias: (n_diffusion_steps, hidden)
+            time_terms = nn.functional.linear(self.actor.time_embeddings(), time_weight, first_layer.bias)
+        self.register_buffer("time_terms", time_terms.contiguous())
+        self.noise_tail = self.actor.network[1:]
+
+    def generate(self, features: th.Tensor, noise: th.Tensor | None) -> th.Tensor:
+        # The reverse steps of DiffusionActor.sample from t = T - 1 down to 0, unrolled; without noise, x_T = 0 and
+        # the terms of the (zero) action and posterior noise are left out
+        state_term = features @ self.state_weight
+        actions = None if noise is None else 0.5 * noise[:, 0]
+        for t in reversed(range(len(self.reverse_coefficients))):
+            c0, c1, m0, m1, std = self.reverse_coefficients[t]
+            hidden = state_term + self.time_terms[t]
+            if actions is not None:
+                hidden = hidden + nn.functional.linear(actions, self.action_weight)
+            predicted_noise = self.noise_tail(hidden)
+            if actions is None:
+                actions = m0 * (-c1 * predicted_noise).clamp(-1.0, 1.0)
+            else:
+                actions = m0 * (c0 * actions - c1 * predicted_noise).clamp(-1.0, 1.0) + m1 * actions
+            if noise is not None and t > 0:
+                actions = actions + std * noise[:, t]
+        assert actions is not None  # n_diffusion_steps >= 1
+        return actions
+
+
+def exportable_policy(
+    actor: GenerativeActor, n_sampling_steps: int | None = None, vec_normalize: VecNormalize | None = None
+) -> ExportablePolicy:
+    """
+    The deployment graph of an actor of this package.
+
+    :param actor: ``model.actor`` of a DACERF or DACER model
+    :param n_sampling_steps: DACERF: number of Euler steps fixed in the graph (the actor's by default). DACER: leave it
+        out (or give the model's ``n_diffusion_steps``): the number of reverse steps is fixed by the noise schedule
+    :param vec_normalize: VecNormalize wrapper the model was trained with, if any
+    :raises TypeError: for another actor
+    :raises ValueError: for a DACER ``n_sampling_steps`` other than its ``n_diffusion_steps``
+    """
+    if isinstance(actor, FlowActor):
+        return ExportableFlowPolicy(actor, n_sampling_steps, vec_normalize)
+    if isinstance(actor, DiffusionActor):
+        if n_sampling_steps is not None and n_sampling_steps != actor.n_diffusion_steps:
+            raise ValueError(
+                f"n_sampling_steps={n_sampling_steps!r}: a DACER policy runs the {actor.n_diffusion_steps} reverse steps "
+                "of the noise schedule it was trained with; leave n_sampling_steps out (a DACERF option)."
+            )
+        return ExportableDiffusionPolicy(actor, vec_normalize)
+    raise TypeError(
+        f"export_policy exports DACERF and DACER models (a sb3_dacerf FlowActor or DiffusionActor), "
+        f"got an actor of type {type(actor).__name__}. "
+        "For SB3's own algorithms see https://stable-baselines3.readthedocs.io/en/master/guide/export.html"
+    )
 
 
 class _ScriptedPolicy(nn.Module):
@@ -139,6 +263,33 @@ class _ScriptedDictPolicy(_ScriptedPolicy):
         if a0 is None:
             return self.deterministic(obs)
         return self.stochastic(obs, a0)
+
+
+class _ScriptedDiffusionPolicy(_ScriptedPolicy):
+    """:class:`_ScriptedPolicy` of a DACER policy, whose optional second input is ``noise``."""
+
+    def forward(self, obs: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
+        if noise is None:
+            return self.deterministic(obs)
+        return self.stochastic(obs, noise)
+
+
+class _ScriptedDiffusionDictPolicy(_ScriptedPolicy):
+    """:class:`_ScriptedDiffusionPolicy` for Dict observation spaces."""
+
+    def forward(self, obs: dict[str, th.Tensor], noise: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
+        if noise is None:
+            return self.deterministic(obs)
+        return self.stochastic(obs, noise)
+
+
+#: The TorchScript entry point of each graph: (Dict observations?, noise input name) -> class
+_SCRIPTED_POLICIES = {
+    (False, "a0"): _ScriptedPolicy,
+    (True, "a0"): _ScriptedDictPolicy,
+    (False, "noise"): _ScriptedDiffusionPolicy,
+    (True, "noise"): _ScriptedDiffusionDictPolicy,
+}
 
 
 def check_vec_normalize(vec_normalize: object, observation_space: spaces.Space) -> None:
@@ -200,20 +351,22 @@ def export_policy(
     opset_version: int = 17,
 ) -> Path:
     """
-    Export the policy of a DACER-F model as a graph from raw observation to action in the environment's units.
+    Export the policy of a DACER-F or DACER model as a graph from raw observation to action in the environment's units.
 
-    ONNX: inputs ``obs`` (or one input per key of a Dict observation space, named by the key) and ``a0``,
-    output ``action``, batch dimension dynamic. ``a0`` defaults to zeros (an initializer that onnxruntime
-    lets you override: ``session.run(None, {"obs": obs})`` is deterministic, ``{"obs": obs, "a0": noise}`` is not).
-    TorchScript: ``policy(obs)`` or ``policy(obs, a0)``, with ``obs`` a tensor or a dict of tensors.
-    Observations have the model's observation space layout (channel-first images, as after ``VecTransposeImage``)
-    and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch dimension.
+    ONNX: inputs ``obs`` (or one input per key of a Dict observation space, named by the key) and the noise (DACERF:
+    ``a0``, ``(batch, action_dim)``; DACER: ``noise``, ``(batch, n_diffusion_steps, action_dim)``), output ``action``,
+    batch dimension dynamic. The noise defaults to zeros (an initializer that onnxruntime lets you override:
+    ``session.run(None, {"obs": obs})`` is deterministic, ``{"obs": obs, "a0": a0}`` is not); a noise with a batch of 1
+    is shared by all the observations. TorchScript: ``policy(obs)`` or ``policy(obs, noise)``, with ``obs`` a tensor
+    or a dict of tensors. Observations have the model's observation space layout (channel-first images, as after
+    ``VecTransposeImage``) and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch dimension.
 
-    :param model: A DACERF model (trained or not)
+    :param model: A DACERF or DACER model (trained or not)
     :param path: File to write (``.onnx`` or ``.pt`` by convention); its folder must exist. The file is written
         whole or not at all: it replaces an existing one only once complete
     :param format: ``"onnx"`` or ``"torchscript"``
-    :param n_sampling_steps: Number of Euler steps, fixed in the graph (the model's ``n_sampling_steps`` by default)
+    :param n_sampling_steps: DACERF: number of Euler steps, fixed in the graph (the model's ``n_sampling_steps`` by
+        default). DACER: leave it out; its ``n_diffusion_steps`` reverse steps are fixed by its noise schedule
     :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``VecNormalize.load``), if any:
         its observation normalisation is then applied inside the graph, so the graph takes raw observations; statistics
         of another observation layout are refused (:func:`check_vec_normalize`)
@@ -223,9 +376,9 @@ def export_policy(
     if format not in EXPORT_FORMATS:
         raise ValueError(f"Unknown export format {format!r}: choose one of {EXPORT_FORMATS}")
     actor = getattr(model, "actor", None)
-    if not isinstance(actor, VelocityField):
+    if not isinstance(actor, (FlowActor, DiffusionActor)):
         raise TypeError(
-            f"export_policy exports DACERF models (a flow actor sb3_dacerf.dacerf.policies.VelocityField), "
+            f"export_policy exports DACERF and DACER models (whose actor is a FlowActor or a DiffusionActor), "
             f"got a {type(model).__name__} model whose actor is a {type(actor).__name__}. "
             "For SB3's own algorithms see https://stable-baselines3.readthedocs.io/en/master/guide/export.html"
         )
@@ -242,13 +395,13 @@ def export_policy(
     if not path.parent.is_dir():
         raise FileNotFoundError(f"Cannot write {path}: the folder {path.parent} does not exist")
 
-    module = ExportablePolicy(actor, n_sampling_steps, vec_normalize)
+    module = exportable_policy(actor, n_sampling_steps, vec_normalize)
     obs = model.policy.obs_to_tensor(observation_space.sample())[0]
     obs = {key: value.cpu() for key, value in obs.items()} if isinstance(obs, dict) else obs.cpu()
-    a0 = th.zeros((1, actor.action_dim))
+    noise = th.zeros(module.default_noise_shape)
     if format == "torchscript":
-        scripted_class = _ScriptedPolicy if module.obs_keys is None else _ScriptedDictPolicy
-        scripted = th.jit.script(scripted_class(th.jit.trace(module, (obs,)), th.jit.trace(module, (obs, a0))))
+        scripted_class = _SCRIPTED_POLICIES[module.obs_keys is not None, module.noise_name]
+        scripted = th.jit.script(scripted_class(th.jit.trace(module, (obs,)), th.jit.trace(module, (obs, noise))))
         # Written whole or not at all: a failed write leaves a previous file at `path` as it was
         with atomic_path(path) as temporary:
             th.jit.save(scripted, str(temporary))
@@ -257,8 +410,9 @@ def export_policy(
     import onnx  # the optional "export" extra: imported only here, so that TorchScript export does not need it
 
     obs_names = ["obs"] if module.obs_keys is None else module.obs_keys
-    # a0's batch is its own dimension: 1 (one a0 for the whole batch, as the default) or the observations' batch
-    dynamic_axes = {**{name: {0: "batch"} for name in [*obs_names, "action"]}, "a0": {0: "a0_batch"}}
+    # The noise's batch is its own dimension: 1 (one noise for the whole batch, as the default) or the observations'
+    noise_name = module.noise_name
+    dynamic_axes = {**{name: {0: "batch"} for name in [*obs_names, "action"]}, noise_name: {0: f"{noise_name}_batch"}}
     # Written whole or not at all: a failed write leaves a previous file at `path` as it was
     with atomic_path(path) as temporary:
         with warnings.catch_warnings():
@@ -266,30 +420,43 @@ def export_policy(
             warnings.simplefilter("ignore", DeprecationWarning)
             th.onnx.export(
                 module,
-                (obs, a0),
+                (obs, noise),
                 str(temporary),
                 dynamo=False,
-                input_names=[*obs_names, "a0"],
+                input_names=[*obs_names, noise_name],
                 output_names=["action"],
                 dynamic_axes=dynamic_axes,
                 opset_version=opset_version,
             )
         graph = onnx.load(str(temporary))
-        # An initializer with an input's name is that input's default value: a0 = 0, deterministic unless overridden
-        graph.graph.initializer.append(onnx.numpy_helper.from_array(np.zeros((1, actor.action_dim), dtype=np.float32), "a0"))
+        # An initializer with an input's name is that input's default value: zeros, deterministic unless overridden
+        graph.graph.initializer.append(onnx.numpy_helper.from_array(noise.numpy(), noise_name))
         onnx.checker.check_model(graph)
         onnx.save(graph, str(temporary))
     return path
+
+
+def load_model(path: Path) -> BaseAlgorithm:
+    """
+    Load a DACERF or DACER model on the CPU, the algorithm read from the file.
+
+    :raises ValueError: if the file holds another algorithm's model, naming it
+    """
+    policy_class = saved_policy_class(path)
+    algorithm = DACER if isinstance(policy_class, type) and issubclass(policy_class, DACERPolicy) else DACERF
+    return algorithm.load(path, device="cpu")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(
         prog="python -m sb3_dacerf.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("model", type=Path, help="DACERF model saved with model.save() (.zip)")
+    parser.add_argument("model", type=Path, help="DACERF or DACER model saved with model.save() (.zip)")
     parser.add_argument("--format", choices=EXPORT_FORMATS, default="onnx")
     parser.add_argument("--out", type=Path, help="output file (default: the model's name with .onnx or .pt)")
-    parser.add_argument("--n-sampling-steps", type=int, help="Euler steps fixed in the graph (default: the model's)")
+    parser.add_argument(
+        "--n-sampling-steps", type=int, help="DACERF: Euler steps fixed in the graph (default: the model's); not for DACER"
+    )
     parser.add_argument("--vec-normalize", type=Path, help="VecNormalize statistics (.pkl) to bake into the graph")
     parser.add_argument("--opset", type=int, default=17, help="ONNX opset version")
     args = parser.parse_args()
@@ -297,10 +464,11 @@ def main() -> None:
     if not args.model.is_file():
         parser.error(f"no model file at {args.model}")
     try:
-        model = DACERF.load(args.model, device="cpu")
+        model = load_model(args.model)
     except Exception as error:
         parser.error(
-            f"could not load {args.model} as a DACERF model (was it saved by another algorithm?): {type(error).__name__}: {error}"
+            f"could not load {args.model} as a DACERF or DACER model (was it saved by another algorithm?): "
+            f"{type(error).__name__}: {error}"
         )
     vec_normalize = None
     if args.vec_normalize is not None:
@@ -316,12 +484,15 @@ def main() -> None:
                 f"{type(error).__name__}: {error}"
             )
     out = args.out or args.model.with_suffix(".onnx" if args.format == "onnx" else ".pt")
-    n_sampling_steps = model.actor.n_sampling_steps if args.n_sampling_steps is None else args.n_sampling_steps
     try:
-        export_policy(model, out, args.format, n_sampling_steps, vec_normalize, args.opset)
+        export_policy(model, out, args.format, args.n_sampling_steps, vec_normalize, args.opset)
     except (TypeError, ValueError, FileNotFoundError) as error:
         parser.error(str(error))
-    print(f"Exported {args.model} ({args.format}, {n_sampling_steps} Euler step(s)) to {out}")
+    if isinstance(model.actor, DiffusionActor):
+        steps = f"{model.actor.n_diffusion_steps} diffusion step(s)"
+    else:
+        steps = f"{model.actor.n_sampling_steps if args.n_sampling_steps is None else args.n_sampling_steps} Euler step(s)"
+    print(f"Exported {args.model} ({args.format}, {steps}) to {out}")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """
-RL Zoo integration: ``python -m rl_zoo3.train --algo dacerf --env <id>`` (and ``enjoy``, ``record_video``,
-``--optimize``) with no wrapper script and no ``--conf-file``.
+RL Zoo integration: ``python -m rl_zoo3.train --algo dacerf --env <id>`` or ``--algo dacer`` (and ``enjoy``,
+``record_video``, ``--optimize``) with no wrapper script and no ``--conf-file``: each algorithm reads its own
+``hyperparams/<algo>.yml``.
 
 With a database ``--storage`` (``postgresql://...``), ``-optimize`` studies get Optuna's trial heartbeat (every
 ``SB3_DACERF_OPTUNA_HEARTBEAT`` seconds, 60 by default, 0 for none): a trial whose worker was killed is marked FAIL
@@ -8,12 +9,12 @@ by the next worker that starts a trial, instead of staying RUNNING forever; and 
 on a new database no longer fail creating Optuna's tables.
 
 RL Zoo fixes its ``--algo`` choices from ``rl_zoo3.utils.ALGOS`` before it imports ``--gym-packages``, so DACERF
-has to be there earlier: the start-up hook ``sb3_dacerf_zoo_hook`` (installed by ``pip install .``) calls
+and DACER have to be there earlier: the start-up hook ``sb3_dacerf_zoo_hook`` (installed by ``pip install .``) calls
 :func:`register` on ``rl_zoo3.utils``, ``rl_zoo3.hyperparams_opt`` and ``rl_zoo3.exp_manager`` as soon as each is
 imported. Where the hook is not installed, ``python -m sb3_dacerf.zoo train --algo dacerf ...`` (any RL Zoo script
-name in place of ``train``) registers DACERF and runs the script.
+name in place of ``train``) registers both algorithms and runs the script.
 
-This module is imported only together with RL Zoo: it imports torch, Stable-Baselines3 and DACERF.
+This module is imported only together with RL Zoo: it imports torch, Stable-Baselines3, DACERF and DACER.
 """
 
 import contextlib
@@ -32,12 +33,15 @@ from typing import Any
 import optuna
 import yaml
 
-from sb3_dacerf import DACERF
+from sb3_dacerf import DACER, DACERF
 
 # Wheels ship the YAML files inside the package; source checkouts and editable installs keep them at the repository root
 HYPERPARAMS_DIR = Path(__file__).parent / "hyperparams"
 if not HYPERPARAMS_DIR.is_dir():
     HYPERPARAMS_DIR = Path(__file__).parent.parent / "hyperparams"
+
+#: The algorithms this package adds to RL Zoo, by their ``--algo`` name
+ALGORITHMS = {"dacerf": DACERF, "dacer": DACER}
 
 # Same names as RL Zoo's off-policy samplers
 NET_ARCH = {
@@ -105,17 +109,70 @@ def sample_dacerf_params(
     return convert_dacerf_params(sampled, policy_kwargs)
 
 
+def convert_dacer_params(sampled_params: dict[str, Any], policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """
+    Turn the values drawn by :func:`sample_dacer_params` (an Optuna trial's ``params``) into DACER arguments.
+
+    :param sampled_params: Optuna parameters, as named in :func:`sample_dacer_params`
+    :param policy_kwargs: ``policy_kwargs`` of the YAML entry, which the sampled ``net_arch`` updates
+    :return: keyword arguments for ``DACER``
+    """
+    hyperparams = sampled_params.copy()
+    hyperparams["batch_size"] = 2 ** hyperparams.pop("batch_size_pow")
+    hyperparams["policy_kwargs"] = {**(policy_kwargs or {}), "net_arch": NET_ARCH[hyperparams.pop("net_arch")]}
+    return hyperparams
+
+
+def sample_dacer_params(
+    trial: optuna.Trial,
+    n_actions: int,
+    n_envs: int,
+    additional_args: dict[str, Any],
+    policy_kwargs: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """
+    Sampler for DACER hyper-parameters (RL Zoo's ``HYPERPARAMS_SAMPLER`` signature): the optimisation and the
+    diffusion and entropy-regulator settings of the DACER paper, around their values.
+
+    :param trial: Optuna trial
+    :param n_actions: action dimension (unused: ``target_entropy="auto"`` already scales with it)
+    :param n_envs: number of environments (unused)
+    :param additional_args: RL Zoo's extra arguments (unused: no HER replay buffer for DACER)
+    :param policy_kwargs: ``policy_kwargs`` of the YAML entry, kept apart from the sampled ``net_arch``
+    :return: keyword arguments for ``DACER``
+    """
+    sampled = {
+        "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),
+        # From 2**7=128 to 2**10=1024 (DACER paper: 256)
+        "batch_size_pow": trial.suggest_int("batch_size_pow", 7, 10),
+        "tau": trial.suggest_float("tau", 1e-4, 0.02, log=True),
+        "policy_delay": trial.suggest_int("policy_delay", 1, 5),
+        "n_diffusion_steps": trial.suggest_categorical("n_diffusion_steps", [5, 10, 20]),
+        "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCH)),
+        "alpha_learning_rate": trial.suggest_float("alpha_learning_rate", 1e-3, 0.1, log=True),
+        "alpha_update_interval": trial.suggest_categorical("alpha_update_interval", [1_000, 5_000, 10_000]),
+    }
+    trial.set_user_attr("batch_size", 2 ** sampled["batch_size_pow"])
+    return convert_dacer_params(sampled, policy_kwargs)
+
+
+#: Each algorithm's Optuna sampler and its converter (RL Zoo's ``HYPERPARAMS_SAMPLER`` and ``HYPERPARAMS_CONVERTER``)
+SAMPLERS = {"dacerf": sample_dacerf_params, "dacer": sample_dacer_params}
+CONVERTERS = {"dacerf": convert_dacerf_params, "dacer": convert_dacer_params}
+
+
 def default_config(algo: str, env_id: str) -> str | None:
     """
     The YAML file RL Zoo should read when no ``--conf-file`` is given.
 
     :param algo: RL Zoo algorithm name
     :param env_id: Gymnasium id
-    :return: ``hyperparams/dacerf.yml`` for DACERF; ``hyperparams/<algo>.yml`` of this package for another
-        algorithm when it has an entry for ``env_id`` (e.g. SAC on ``DMC-*`` ids); else ``None`` (RL Zoo's own file)
+    :return: ``hyperparams/dacerf.yml`` for DACERF, ``hyperparams/dacer.yml`` for DACER; ``hyperparams/<algo>.yml`` of
+        this package for another algorithm when it has an entry for ``env_id`` (e.g. SAC on ``DMC-*`` ids); else
+        ``None`` (RL Zoo's own file)
     """
     path = HYPERPARAMS_DIR / f"{algo}.yml"
-    if algo == "dacerf" or (path.is_file() and env_id in yaml.safe_load(path.read_text())):
+    if algo in ALGORITHMS or (path.is_file() and env_id in yaml.safe_load(path.read_text())):
         return str(path)
     return None
 
@@ -201,12 +258,12 @@ def _patch_experiment_manager(cls: type) -> None:
 
     @functools.wraps(optimize)
     def hyperparameters_optimization(self: Any) -> None:
-        if self.algo == "dacerf":
+        if self.algo in ALGORITHMS:
             from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
 
             # RL Zoo replaces the YAML's policy_kwargs with the sampled ones: merge instead, to keep the optimizer
-            HYPERPARAMS_SAMPLER["dacerf"] = functools.partial(
-                sample_dacerf_params, policy_kwargs=self._hyperparams.get("policy_kwargs")
+            HYPERPARAMS_SAMPLER[self.algo] = functools.partial(
+                SAMPLERS[self.algo], policy_kwargs=self._hyperparams.get("policy_kwargs")
             )
         if not is_database_url(self.storage):
             optimize(self)
@@ -221,22 +278,23 @@ def _patch_experiment_manager(cls: type) -> None:
 
 def register(module: ModuleType) -> None:
     """
-    Add DACERF to one RL Zoo module (idempotent): ``rl_zoo3.utils`` (``ALGOS``), ``rl_zoo3.hyperparams_opt``
-    (Optuna sampler and converter) or ``rl_zoo3.exp_manager`` (default YAML file); other modules are left alone.
+    Add DACERF and DACER to one RL Zoo module (idempotent): ``rl_zoo3.utils`` (``ALGOS``), ``rl_zoo3.hyperparams_opt``
+    (Optuna samplers and converters) or ``rl_zoo3.exp_manager`` (default YAML files); other modules are left alone.
 
     :param module: the RL Zoo module, already executed
     """
     if module.__name__ == "rl_zoo3.utils":
-        module.ALGOS["dacerf"] = DACERF
+        module.ALGOS.update(ALGORITHMS)
     elif module.__name__ == "rl_zoo3.hyperparams_opt":
-        module.HYPERPARAMS_SAMPLER.setdefault("dacerf", sample_dacerf_params)
-        module.HYPERPARAMS_CONVERTER["dacerf"] = convert_dacerf_params
+        for algo, sampler in SAMPLERS.items():
+            module.HYPERPARAMS_SAMPLER.setdefault(algo, sampler)
+        module.HYPERPARAMS_CONVERTER.update(CONVERTERS)
     elif module.__name__ == "rl_zoo3.exp_manager":
         _patch_experiment_manager(module.ExperimentManager)
 
 
 def main() -> None:
-    """``python -m sb3_dacerf.zoo <script> [args]``: run ``rl_zoo3.<script>`` (train, enjoy, record_video, ...) with DACERF."""
+    """``python -m sb3_dacerf.zoo <script> [args]``: run ``rl_zoo3.<script>`` (train, enjoy, ...) with DACERF and DACER."""
     import rl_zoo3.exp_manager
     import rl_zoo3.hyperparams_opt
     import rl_zoo3.utils

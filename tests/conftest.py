@@ -1,4 +1,42 @@
+"""
+Fixtures shared by the test modules.
+
+Behaviours both algorithms share are tested once, parametrised over ``MODEL_LIST`` through the ``model_class``
+fixture (as sb3-contrib's tests are). A module about one algorithm overrides ``model_class`` with a fixture that
+returns that algorithm (pytest's fixture overriding), and gets the same ``fast`` settings.
+"""
+
+from typing import Any
+
+import pytest
 import torch as th
+
+from sb3_dacerf import DACER, DACERF
 
 # The suite's networks and batches are tiny: one thread avoids oversubscribing CI's two cores
 th.set_num_threads(1)
+
+MODEL_LIST = [DACER, DACERF]
+
+
+def fast_settings(model_class: type) -> dict[str, Any]:
+    """
+    Small and fast settings of ``model_class`` (the behaviours under test do not depend on the network size or the
+    number of steps): a new dict at every call, so that a test can change it without affecting another.
+    """
+    settings: dict[str, Any] = dict(learning_starts=50, batch_size=32, buffer_size=2_000, policy_kwargs=dict(net_arch=[32, 32]))
+    if model_class is DACER:
+        settings["n_diffusion_steps"] = 5
+    return settings
+
+
+@pytest.fixture(params=MODEL_LIST, ids=lambda model_class: model_class.__name__)
+def model_class(request: pytest.FixtureRequest) -> type:
+    """Each algorithm of the package in turn."""
+    return request.param
+
+
+@pytest.fixture
+def fast(model_class: type) -> dict[str, Any]:
+    """:func:`fast_settings` of ``model_class``."""
+    return fast_settings(model_class)

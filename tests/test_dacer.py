@@ -1,21 +1,23 @@
+"""DACER's own behaviours; what it shares with DACERF is tested in test_algorithms.py."""
+
 import math
 
-import numpy as np
 import pytest
 import torch as th
-from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.envs import FakeImageEnv, SimpleMultiObsEnv
 from stable_baselines3.common.logger import configure
 
 from sb3_dacerf import DACER
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
 
-# Small and fast: the behaviour under test does not depend on the network size or the number of steps
-FAST = dict(learning_starts=50, batch_size=32, buffer_size=2_000, n_diffusion_steps=5, policy_kwargs=dict(net_arch=[32, 32]))
+
+@pytest.fixture
+def model_class() -> type:
+    """This module's algorithm, for the ``fast`` settings of conftest.py."""
+    return DACER
 
 
-def test_learns_on_box_observations_and_logs_the_paper_quantities(tmp_path):
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, alpha_update_interval=100, entropy_samples=10, **FAST)
+def test_learns_on_box_observations_and_logs_the_paper_quantities(tmp_path, fast):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, alpha_update_interval=100, entropy_samples=10, **fast)
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(200, log_interval=1)
     header = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
@@ -32,21 +34,21 @@ def test_official_defaults():
     assert model.target_entropy == pytest.approx(-0.9)
     assert model.actor.log_alpha.item() == pytest.approx(1.2)
     assert (model.actor.n_diffusion_steps, model.actor.beta_schedule, model.actor.exploration_noise_scale) == (20, "cosine", 0.15)
-    assert [m.out_features for m in model.actor.noise_net if isinstance(m, th.nn.Linear)] == [256, 256, 256, 1]
-    assert any(isinstance(m, th.nn.Mish) for m in model.actor.noise_net)
+    assert [m.out_features for m in model.actor.network if isinstance(m, th.nn.Linear)] == [256, 256, 256, 1]
+    assert any(isinstance(m, th.nn.Mish) for m in model.actor.network)
     assert model.policy.critic.n_critics == 2
 
 
-def test_one_network_call_per_diffusion_step():
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **FAST)
+def test_one_network_call_per_diffusion_step(fast):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **fast)
     calls = []
-    model.actor.noise_net.register_forward_hook(lambda *_: calls.append(1))
+    model.actor.network.register_forward_hook(lambda *_: calls.append(1))
     model.predict(model.observation_space.sample())
     assert len(calls) == 5
 
 
-def test_actor_and_targets_update_every_policy_delay_updates():
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, policy_delay=2, **FAST)
+def test_actor_and_targets_update_every_policy_delay_updates(fast):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, policy_delay=2, **fast)
     model.learn(60)  # 10 updates: the last one (10) updated the actor
     actor_before = [p.clone() for p in model.actor.parameters()]
     target_before = [p.clone() for p in model.critic_target.parameters()]
@@ -59,9 +61,9 @@ def test_actor_and_targets_update_every_policy_delay_updates():
 
 
 @pytest.mark.parametrize("target_entropy, direction", [(-100.0, -1), (100.0, 1)])
-def test_alpha_moves_towards_the_target_entropy_once_per_interval(target_entropy, direction):
+def test_alpha_moves_towards_the_target_entropy_once_per_interval(target_entropy, direction, fast):
     regulator = dict(target_entropy=target_entropy, alpha_update_interval=4, entropy_samples=8)
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **regulator, **FAST)
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **regulator, **fast)
     model.learn(59)  # updates 1..9: the entropy regulator runs at updates 1, 5 and 9
     # Adam's steps have size lr while the sign of the gradient H - H_target does not change
     assert model.actor.log_alpha.item() == pytest.approx(1.2 + direction * 3 * 3e-2, abs=1e-4)
@@ -81,17 +83,11 @@ def test_gaussian_mixture_entropy_matches_closed_forms():
     assert th.isfinite(gaussian_mixture_entropy(th.ones(4, 50, 3))).all()
 
 
-def test_save_load_gives_identical_deterministic_predictions(tmp_path):
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, alpha_update_interval=20, entropy_samples=8, **FAST)
+def test_save_load_restores_the_entropy_regulator(tmp_path, fast):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, alpha_update_interval=20, entropy_samples=8, **fast)
     model.learn(100)
-    observations = np.stack([model.observation_space.sample() for _ in range(16)])
-    actions, _ = model.predict(observations, deterministic=True)
-    np.testing.assert_array_equal(model.predict(observations, deterministic=True)[0], actions)
-    assert not np.array_equal(model.predict(observations)[0], actions)
-
     model.save(tmp_path / "dacer")
     loaded = DACER.load(tmp_path / "dacer")
-    np.testing.assert_array_equal(loaded.predict(observations, deterministic=True)[0], actions)
     assert loaded.actor.n_diffusion_steps == 5 and loaded.policy_delay == 2
     assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item() != 1.2
     assert loaded.alpha_optimizer.state_dict()["state"][0]["step"] == model.alpha_optimizer.state_dict()["state"][0]["step"]
@@ -99,45 +95,40 @@ def test_save_load_gives_identical_deterministic_predictions(tmp_path):
     assert loaded.entropy == model.entropy
 
 
-def test_predict_shapes_and_bounds():
-    env = make_vec_env("MountainCarContinuous-v0", n_envs=2, seed=0)
-    model = DACER("MlpPolicy", env, seed=0, **FAST)
-    observation = env.observation_space.sample()
-    assert model.predict(observation)[0].shape == (1,)
-    actions, _ = model.predict(np.stack([observation] * 7))
-    assert actions.shape == (7, 1) and np.all(np.abs(actions) <= 1)
-    assert model.predict(env.reset())[0].shape == (2, 1)
-
-
-def test_image_and_dict_observations():
-    env = FakeImageEnv(action_dim=2, screen_height=40, screen_width=40, n_channels=1, discrete=False)
-    model = DACER("CnnPolicy", env, seed=0, learning_starts=20, batch_size=8, buffer_size=200, n_diffusion_steps=3)
-    model.learn(30)
-    action, _ = model.predict(env.observation_space.sample(), deterministic=True)
-    assert action.shape == env.action_space.shape and env.action_space.contains(action)
-
-    env = SimpleMultiObsEnv(random_start=False, discrete_actions=False)
-    model = DACER("MultiInputPolicy", env, seed=0, **FAST)
-    model.learn(60)
-    assert model.predict(env.observation_space.sample(), deterministic=True)[0].shape == env.action_space.shape
-
-
-def test_linear_beta_schedule():
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **{**FAST, "policy_kwargs": dict(net_arch=[16], beta_schedule="linear")})
+def test_linear_beta_schedule(fast):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "policy_kwargs": dict(net_arch=[16], beta_schedule="linear")})
     model.learn(60)
     with pytest.raises(ValueError, match="Unknown beta_schedule 'quadratic'"):
         DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(beta_schedule="quadratic"))
 
 
-def test_discrete_actions_are_refused_with_advice():
-    with pytest.raises(TypeError, match="DACER needs a continuous action space"):
-        DACER("MlpPolicy", "CartPole-v1")
-
-
 @pytest.mark.parametrize(
     "name, value",
-    [("n_diffusion_steps", 0), ("entropy_samples", 2), ("alpha_update_interval", 0), ("alpha_learning_rate", 0.0), ("tau", 0.0)],
+    [("n_diffusion_steps", 0), ("entropy_samples", 2), ("alpha_update_interval", 0), ("alpha_learning_rate", 0.0)],
 )
 def test_invalid_hyperparameters(name, value):
     with pytest.raises(ValueError, match=f"Invalid {name}="):
         DACER("MlpPolicy", "Pendulum-v1", **{name: value})
+
+
+@pytest.mark.parametrize("n_diffusion_steps", [1, 5])
+def test_noise_holds_the_start_and_the_posterior_noise_of_each_reverse_step(fast, n_diffusion_steps):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "n_diffusion_steps": n_diffusion_steps})
+    actor = model.actor
+    features = th.randn((8, actor.features_dim))
+    th.manual_seed(1)
+    noise = actor.draw_noise(features)
+    assert noise.shape == (8, n_diffusion_steps, 1)
+    # The draws of DACER's sampler, seed for seed: x_T's, then one per step (the last step, t = 0, uses none)
+    th.manual_seed(1)
+    start, steps = th.randn((8, 1)), th.randn((n_diffusion_steps, 8, 1))
+    assert th.equal(noise[:, 0], start) and th.equal(noise[:, 1:], steps[1:].transpose(0, 1))
+    # x_T = 0.5 noise[:, 0]: with one step and no network output, the action is x̂_0 = x_T / sqrt(ᾱ_0)
+    if n_diffusion_steps == 1:
+        with th.no_grad():
+            for module in actor.network.modules():
+                if isinstance(module, th.nn.Linear):
+                    module.weight.zero_()
+                    module.bias.zero_()
+            c0 = actor.reverse_coefficients[0][0]
+            th.testing.assert_close(actor.sample(features, noise), (c0 * 0.5 * noise[:, 0]).clamp(-1, 1))

@@ -133,20 +133,26 @@ def test_reward_terms_signs():
     assert terms["liveness"] == pytest.approx(1.0)  # clip(v_x, 0, 3) / 3 at highway speed
     assert all(abs(value) < 1e-3 for name, value in terms.items() if name != "liveness"), terms
 
+    # Each case changes a new empty highway (passed in: no lambda reads a variable of this loop when it runs)
     cases = {
-        "tracking_lateral": lambda: setattr(ego, "position", ego.position + np.array([0.0, 1.0])),
-        "tracking_speed": lambda: setattr(ego, "speed", unwrapped.reference_speed - 3.0),
-        "tracking_heading": lambda: setattr(ego, "heading", 0.2),
-        "control_acceleration": lambda: setattr(unwrapped.action_type, "command", np.array([0.5, 0.0])),
-        "control_steering": lambda: setattr(unwrapped.action_type, "command", np.array([0.0, 0.05])),
-        "comfort_yaw_rate": lambda: setattr(unwrapped.action_type, "command", np.array([0.0, 0.05])),
-        "safe_front": lambda: add_vehicle(unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 15.0, ego.speed),
-        "safe_space": lambda: add_vehicle(unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 7.0, ego.speed),
-        "boundary": lambda: setattr(ego, "position", np.array([ego.position[0], -0.8])),  # 1.2 m from lane 0's edge
+        "tracking_lateral": lambda unwrapped, ego, lane: setattr(ego, "position", ego.position + np.array([0.0, 1.0])),
+        "tracking_speed": lambda unwrapped, ego, lane: setattr(ego, "speed", unwrapped.reference_speed - 3.0),
+        "tracking_heading": lambda unwrapped, ego, lane: setattr(ego, "heading", 0.2),
+        "control_acceleration": lambda unwrapped, ego, lane: setattr(unwrapped.action_type, "command", np.array([0.5, 0.0])),
+        "control_steering": lambda unwrapped, ego, lane: setattr(unwrapped.action_type, "command", np.array([0.0, 0.05])),
+        "comfort_yaw_rate": lambda unwrapped, ego, lane: setattr(unwrapped.action_type, "command", np.array([0.0, 0.05])),
+        "safe_front": lambda unwrapped, ego, lane: add_vehicle(
+            unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 15.0, ego.speed
+        ),
+        "safe_space": lambda unwrapped, ego, lane: add_vehicle(
+            unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 7.0, ego.speed
+        ),
+        # 1.2 m from lane 0's edge
+        "boundary": lambda unwrapped, ego, lane: setattr(ego, "position", np.array([ego.position[0], -0.8])),
     }
     for term, construct in cases.items():
         env, unwrapped, ego, lane = empty_highway()
-        construct()
+        construct(unwrapped, ego, lane)
         terms = step_terms(env)
         assert terms[term] < 0, (term, terms)
         assert terms["collision"] == 0 and terms["off_road"] == 0, (term, terms)

@@ -13,13 +13,16 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import SimpleMultiObsEnv
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_dacerf import DACERF
-from sb3_dacerf.export import export_policy, main
+from sb3_dacerf import DACER, DACERF
+from sb3_dacerf.export import export_policy, exportable_policy, main
 
 ort = pytest.importorskip("onnxruntime")
 
 # Untrained tiny models: equivalence does not depend on training or size
 TINY = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32]), seed=0)
+# DACER with the linear noise schedule: an untrained model's deterministic actions are then inside the bounds (with
+# the cosine schedule most are clipped, which would hide differences); the cosine schedule is tested on its own
+TINY_DACER = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32], beta_schedule="linear"), seed=0, n_diffusion_steps=5)
 
 
 class DiscreteObsEnv(gym.Env):
@@ -42,14 +45,15 @@ class DiscreteObsEnv(gym.Env):
         return self.observation_space.sample(), 0.0, False, False, {}
 
 
-def make_model(policy: str, n_sampling_steps: int = 1) -> DACERF:
+def make_model(policy: str, n_sampling_steps: int = 1, algorithm: type = DACERF):
+    settings = {**TINY, "n_sampling_steps": n_sampling_steps} if algorithm is DACERF else dict(TINY_DACER)
     if policy == "MlpPolicy":
-        return DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=n_sampling_steps, **TINY)
+        return algorithm("MlpPolicy", "Pendulum-v1", **settings)
     env = SimpleMultiObsEnv(discrete_actions=False) if policy == "MultiInputPolicy" else DiscreteObsEnv()
-    return DACERF("MultiInputPolicy", env, n_sampling_steps=n_sampling_steps, **TINY)
+    return algorithm("MultiInputPolicy", env, **settings)
 
 
-def sample_observations(model: DACERF, n: int):
+def sample_observations(model, n: int):
     """``n`` observations of the model's space, batched (numpy) as the exported graph and ``predict`` take them."""
     samples = [model.observation_space.sample() for _ in range(n)]
     if isinstance(model.observation_space, spaces.Dict):
@@ -57,44 +61,71 @@ def sample_observations(model: DACERF, n: int):
     return np.stack(samples)
 
 
-def run_exported(path, format: str, obs, a0: np.ndarray | None = None) -> np.ndarray:
+def run_exported(path, format: str, obs, noise: np.ndarray | None = None, noise_name: str = "a0") -> np.ndarray:
     """Run an exported policy as a deployment would: onnxruntime, or the TorchScript file without this package."""
     if format == "onnx":
         feed = dict(obs) if isinstance(obs, dict) else {"obs": obs}
-        if a0 is not None:
-            feed["a0"] = a0
+        if noise is not None:
+            feed[noise_name] = noise
         return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, feed)[0]
     policy = th.jit.load(str(path))
     obs_tensor = {key: th.as_tensor(value) for key, value in obs.items()} if isinstance(obs, dict) else th.as_tensor(obs)
     with th.no_grad():
-        return (policy(obs_tensor) if a0 is None else policy(obs_tensor, th.as_tensor(a0))).numpy()
+        return (policy(obs_tensor) if noise is None else policy(obs_tensor, th.as_tensor(noise))).numpy()
 
 
-def sample_with_noise(model: DACERF, obs, a0: np.ndarray) -> np.ndarray:
-    """The stochastic policy with a given a0: ``actor.sample(features, a0)`` rescaled to the action space."""
+def sample_with_noise(model, obs, noise: np.ndarray) -> np.ndarray:
+    """The stochastic policy with a given noise: ``actor.sample(features, noise)`` rescaled to the action space."""
     obs_tensor = model.policy.obs_to_tensor(obs)[0]
     with th.no_grad():
         features = model.actor.extract_features(obs_tensor, model.actor.features_extractor)
-        actions = model.actor.sample(features, th.as_tensor(a0)).numpy()
+        actions = model.actor.sample(features, th.as_tensor(noise)).numpy()
     return model.policy.unscale_action(actions)
 
 
 @pytest.mark.parametrize("format", ["onnx", "torchscript"])
 @pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy", "DiscreteObs"])
-def test_exported_policy_matches_predict(tmp_path, format, policy):
-    model = make_model(policy)
+@pytest.mark.parametrize("algorithm", [DACERF, DACER], ids=["DACERF", "DACER"])
+def test_exported_policy_matches_predict(tmp_path, format, policy, algorithm):
+    model = make_model(policy, algorithm=algorithm)
     path = export_policy(model, tmp_path / "policy", format=format)
     obs = sample_observations(model, 200)
     expected, _ = model.predict(obs, deterministic=True)
+    # Most actions inside the bounds: a difference would not be hidden by the clipping
+    low, high = model.action_space.low, model.action_space.high
+    assert ((expected > low + 1e-3) & (expected < high - 1e-3)).mean() > 0.5
     assert np.abs(run_exported(path, format, obs) - expected).max() <= 1e-5
     single = {key: value[:1] for key, value in obs.items()} if isinstance(obs, dict) else obs[:1]
     assert np.abs(run_exported(path, format, single) - expected[:1]).max() <= 1e-5
 
-    # a0 as second input: the stochastic policy, one a0 per observation or one for the whole batch
-    a0 = np.random.default_rng(0).standard_normal((200, model.actor.action_dim)).astype(np.float32)
-    assert np.abs(run_exported(path, format, obs, a0) - sample_with_noise(model, obs, a0)).max() <= 1e-5
-    a0_shared = np.tile(a0[:1], (200, 1))
-    assert np.abs(run_exported(path, format, obs, a0[:1]) - sample_with_noise(model, obs, a0_shared)).max() <= 1e-5
+    # The noise as second input: the stochastic policy, one noise per observation or one for the whole batch
+    noise_name = exportable_policy(model.actor).noise_name
+    assert noise_name == ("a0" if algorithm is DACERF else "noise")
+    noise = np.random.default_rng(0).standard_normal((200, *model.actor.noise_shape)).astype(np.float32)
+    assert np.abs(run_exported(path, format, obs, noise, noise_name) - sample_with_noise(model, obs, noise)).max() <= 1e-5
+    shared = np.repeat(noise[:1], 200, axis=0)
+    assert np.abs(run_exported(path, format, obs, noise[:1], noise_name) - sample_with_noise(model, obs, shared)).max() <= 1e-5
+
+
+@pytest.mark.parametrize("format", ["onnx", "torchscript"])
+def test_exported_dacer_policy_with_the_cosine_schedule_and_default_settings(tmp_path, format):
+    """DACER's default networks (3 x 256 Mish layers, 20 diffusion steps) and cosine schedule."""
+    model = DACER("MlpPolicy", "Pendulum-v1", buffer_size=1, seed=0)
+    path = export_policy(model, tmp_path / "policy", format=format)
+    obs = sample_observations(model, 100)
+    expected, _ = model.predict(obs, deterministic=True)
+    assert np.abs(run_exported(path, format, obs) - expected).max() <= 1e-5
+    noise = np.random.default_rng(1).standard_normal((100, 20, 1)).astype(np.float32)
+    stochastic = sample_with_noise(model, obs, noise)
+    assert (np.abs(stochastic) < 2 - 1e-3).mean() > 0.5  # mostly inside the bounds
+    assert np.abs(run_exported(path, format, obs, noise, "noise") - stochastic).max() <= 1e-5
+
+
+def test_dacer_number_of_steps_is_that_of_its_schedule(tmp_path):
+    model = make_model("MlpPolicy", algorithm=DACER)
+    export_policy(model, tmp_path / "p.onnx", n_sampling_steps=5)  # its own number of steps is accepted
+    with pytest.raises(ValueError, match="runs the 5 reverse steps of the noise schedule it was trained with"):
+        export_policy(model, tmp_path / "p.onnx", n_sampling_steps=3)
 
 
 @pytest.mark.parametrize("format", ["onnx", "torchscript"])
@@ -114,12 +145,13 @@ def test_number_of_euler_steps_is_fixed_at_export(tmp_path, format):
 
 @pytest.mark.parametrize("format", ["onnx", "torchscript"])
 @pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
-def test_vec_normalize_statistics_are_baked_in(tmp_path, format, policy):
+@pytest.mark.parametrize("algorithm", [DACERF, DACER], ids=["DACERF", "DACER"])
+def test_vec_normalize_statistics_are_baked_in(tmp_path, format, policy, algorithm):
     if policy == "MlpPolicy":
         vec_env = VecNormalize(make_vec_env("Pendulum-v1"), clip_obs=2.0)
     else:
         vec_env = VecNormalize(make_vec_env(lambda: SimpleMultiObsEnv(discrete_actions=False)), norm_obs_keys=["vec"])
-    model = DACERF(policy, vec_env, **TINY)
+    model = algorithm(policy, vec_env, **(TINY if algorithm is DACERF else TINY_DACER))
     # Statistics far from (0, 1), so that forgetting or misapplying them shows
     rng = np.random.default_rng(0)
     obs_rms = vec_env.obs_rms if policy == "MlpPolicy" else vec_env.obs_rms["vec"]
@@ -137,6 +169,16 @@ def test_vec_normalize_statistics_are_baked_in(tmp_path, format, policy):
 def test_command_line(tmp_path, monkeypatch, capsys):
     model = make_model("MlpPolicy")
     model.save(tmp_path / "model.zip")
+    # A DACER model: the algorithm is read from the file (in-process: a subprocess start costs seconds)
+    dacer = make_model("MlpPolicy", algorithm=DACER)
+    dacer.save(tmp_path / "dacer.zip")
+    monkeypatch.setattr(sys, "argv", ["export", str(tmp_path / "dacer.zip"), "--format", "torchscript"])
+    main()
+    assert "(torchscript, 5 diffusion step(s))" in capsys.readouterr().out
+    obs = sample_observations(dacer, 50)
+    expected, _ = dacer.predict(obs, deterministic=True)
+    assert np.abs(run_exported(tmp_path / "dacer.pt", "torchscript", obs) - expected).max() <= 1e-5
+
     done = subprocess.run(
         [
             sys.executable,
@@ -162,6 +204,7 @@ def test_command_line(tmp_path, monkeypatch, capsys):
         ([str(tmp_path / "sac.zip")], "could not load"),
         ([str(tmp_path / "model.zip"), "--vec-normalize", str(tmp_path / "missing.pkl")], "no VecNormalize statistics file"),
         ([str(tmp_path / "model.zip"), "--out", str(tmp_path / "missing" / "policy.onnx")], "does not exist"),
+        ([str(tmp_path / "dacer.zip"), "--n-sampling-steps", "2"], "leave n_sampling_steps out"),
     ]:
         monkeypatch.setattr(sys, "argv", ["export", *arguments])
         with pytest.raises(SystemExit) as exit_info:
@@ -171,7 +214,7 @@ def test_command_line(tmp_path, monkeypatch, capsys):
 
 def test_clear_errors(tmp_path):
     model = make_model("MlpPolicy")
-    with pytest.raises(TypeError, match="exports DACERF models"):
+    with pytest.raises(TypeError, match="exports DACERF and DACER models"):
         export_policy(SAC("MlpPolicy", "Pendulum-v1", buffer_size=1, policy_kwargs=dict(net_arch=[8])), tmp_path / "p.onnx")
     with pytest.raises(FileNotFoundError, match="does not exist"):
         export_policy(model, tmp_path / "missing" / "p.onnx")

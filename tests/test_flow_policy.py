@@ -1,4 +1,6 @@
-"""The velocity-field actor as a conditional generative model, trained by flow matching alone."""
+"""The flow actor as a conditional generative model, trained by flow matching alone."""
+
+import copy
 
 import numpy as np
 import pytest
@@ -6,12 +8,13 @@ import torch as th
 from gymnasium import spaces
 from torch import nn
 
-from sb3_dacerf.dacerf.policies import VelocityField
+from sb3_dacerf.common import flow_matching_loss
+from sb3_dacerf.dacerf.policies import FlowActor
 
 
-def make_velocity_field(n_sampling_steps: int, obs_dim: int = 2) -> VelocityField:
+def make_flow_actor(n_sampling_steps: int, obs_dim: int = 2) -> FlowActor:
     observation_space = spaces.Box(-1, 1, (obs_dim,), np.float32)
-    return VelocityField(
+    return FlowActor(
         observation_space,
         spaces.Box(-1, 1, (1,), np.float32),
         net_arch=[128, 128],
@@ -21,7 +24,7 @@ def make_velocity_field(n_sampling_steps: int, obs_dim: int = 2) -> VelocityFiel
     )
 
 
-def fit_two_modes(field: VelocityField, n_updates: int = 1500) -> None:
+def fit_two_modes(field: FlowActor, n_updates: int = 1500) -> None:
     """Conditional flow matching towards a target that is ±0.6 for state s0 and ±0.2 + 0.5 for state s1."""
     optimizer = th.optim.Adam(field.parameters(), lr=2e-3)
     for _ in range(n_updates):
@@ -29,29 +32,34 @@ def fit_two_modes(field: VelocityField, n_updates: int = 1500) -> None:
         features = nn.functional.one_hot(states, 2).float()
         sign = th.randint(0, 2, (256, 1)).float() * 2 - 1
         targets = th.where(states[:, None] == 0, 0.6 * sign, 0.5 + 0.2 * sign)
-        noise = th.randn_like(targets)
-        time = th.rand((256, 1))
-        actions_t = (1 - time) * noise + time * targets
-        loss = (field.velocity(features, actions_t, time) - (targets - noise)).pow(2).mean()
+        loss = flow_matching_loss(lambda actions_t, time: field.velocity(features, actions_t, time), targets).mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
 
 
 @pytest.fixture(scope="module")
-def trained_field() -> VelocityField:
+def trained_field() -> FlowActor:
+    """Trained once for the module: tests take a copy with :func:`with_sampling_steps` and leave it unchanged."""
     th.manual_seed(0)
-    field = make_velocity_field(n_sampling_steps=1)
+    field = make_flow_actor(n_sampling_steps=1)
     fit_two_modes(field)
+    return field
+
+
+def with_sampling_steps(field: FlowActor, n_sampling_steps: int) -> FlowActor:
+    """A copy of ``field`` that samples with ``n_sampling_steps`` Euler steps."""
+    field = copy.deepcopy(field)
+    field.n_sampling_steps = n_sampling_steps
     return field
 
 
 @pytest.mark.parametrize("state, modes", [(0, (-0.6, 0.6)), (1, (0.3, 0.7))])
 def test_multi_step_sampling_finds_both_modes(trained_field, state, modes):
-    trained_field.n_sampling_steps = 20
+    field = with_sampling_steps(trained_field, 20)
     features = nn.functional.one_hot(th.full((2000,), state), 2).float()
     with th.no_grad():
-        actions = trained_field.sample(features, th.randn((2000, 1))).squeeze(1)
+        actions = field.sample(features, th.randn((2000, 1))).squeeze(1)
     for mode in modes:
         assert (actions - mode).abs().lt(0.1).float().mean() > 0.3, f"mode {mode} missing"
     # and little mass half-way between the modes
@@ -60,17 +68,17 @@ def test_multi_step_sampling_finds_both_modes(trained_field, state, modes):
 
 def test_one_step_sampling_collapses_to_the_conditional_mean(trained_field):
     """With one Euler step, v(s, a0, 0) ≈ E[a*|s] - a0 under independent coupling: a1 ≈ E[a*|s] for every a0."""
-    trained_field.n_sampling_steps = 1
+    field = with_sampling_steps(trained_field, 1)
     features = nn.functional.one_hot(th.zeros(2000, dtype=th.long), 2).float()
     with th.no_grad():
-        actions = trained_field.sample(features, th.randn((2000, 1))).squeeze(1)
+        actions = field.sample(features, th.randn((2000, 1))).squeeze(1)
     assert abs(actions.mean().item()) < 0.1
     assert actions.std().item() < 0.2  # far below the target's 0.6 spread
 
 
 def test_deterministic_forward_starts_from_the_prior_mean():
     th.manual_seed(0)
-    field = make_velocity_field(n_sampling_steps=3)
+    field = make_flow_actor(n_sampling_steps=3)
     observations = th.rand((5, 2))
     assert th.equal(field(observations, deterministic=True), field(observations, deterministic=True))
     assert not th.equal(field(observations), field(observations))

@@ -21,14 +21,16 @@ import rl_zoo3.exp_manager  # noqa: E402
 import rl_zoo3.hyperparams_opt  # noqa: E402
 import rl_zoo3.utils  # noqa: E402
 
-from sb3_dacerf import DACERF  # noqa: E402
+from sb3_dacerf import DACER, DACERF  # noqa: E402
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS  # noqa: E402
 from sb3_dacerf.envs.dmc import DMC_ENV_IDS  # noqa: E402
 from sb3_dacerf.zoo import (  # noqa: E402
     HYPERPARAMS_DIR,
+    convert_dacer_params,
     convert_dacerf_params,
     default_config,
     register,
+    sample_dacer_params,
     sample_dacerf_params,
 )
 
@@ -60,6 +62,8 @@ TINY_DACERF = [
     "langevin_steps:2",
     "policy_kwargs:dict(net_arch=[32, 32], optimizer_class='RAD')",
 ]
+# A DACER small enough for a few hundred steps in a test
+TINY_DACER = ["learning_starts:50", "batch_size:32", "n_diffusion_steps:5", "policy_kwargs:dict(net_arch=[32, 32])"]
 
 
 def zoo_command(script: str, *args: str) -> tuple[list[str], dict[str, str]]:
@@ -95,14 +99,16 @@ def test_register_is_idempotent():
     for module in (rl_zoo3.utils, rl_zoo3.hyperparams_opt, rl_zoo3.exp_manager):
         register(module)
         register(module)
-    assert rl_zoo3.utils.ALGOS["dacerf"] is DACERF
+    assert rl_zoo3.utils.ALGOS["dacerf"] is DACERF and rl_zoo3.utils.ALGOS["dacer"] is DACER
     assert rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER["dacerf"] is convert_dacerf_params
-    assert "dacerf" in rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER
+    assert rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER["dacer"] is convert_dacer_params
+    assert {"dacerf", "dacer"} <= set(rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER)
     assert rl_zoo3.exp_manager.ExperimentManager._sb3_dacerf_patched
 
 
 def test_default_config():
     assert default_config("dacerf", "Pendulum-v1") == str(HYPERPARAMS_DIR / "dacerf.yml")
+    assert default_config("dacer", "Pendulum-v1") == str(HYPERPARAMS_DIR / "dacer.yml")
     assert default_config("sac", "DMC-dog-run-v0") == str(HYPERPARAMS_DIR / "sac.yml")
     assert default_config("sac", "Pendulum-v1") is None
     assert default_config("ppo", "DMC-dog-run-v0") is None
@@ -127,6 +133,35 @@ def test_yaml_entries():
     for key in ("buffer_size", "train_freq", "gradient_steps"):
         paper.pop(key)
     assert paper == {key: value for key, value in PAPER_HYPERPARAMETERS.items() if key != "policy_kwargs"}
+
+
+def test_dacer_yaml_entries():
+    dacer = yaml.safe_load((HYPERPARAMS_DIR / "dacer.yml").read_text())
+    dacerf = yaml.safe_load((HYPERPARAMS_DIR / "dacerf.yml").read_text())
+    # The same environments and budgets as DACERF's file, for like-for-like comparisons
+    env_ids = {key for key in dacerf if key not in ("defaults", "paper", "mujoco", "dmc", "driving")}
+    assert {key for key in dacer if key not in ("defaults", "mujoco", "dmc", "driving")} == env_ids
+    dacer_args = set(inspect.signature(DACER).parameters)
+    for env_id in env_ids:
+        entry = dacer[env_id]
+        assert set(entry) - ZOO_KEYS <= dacer_args, env_id
+        assert entry["n_timesteps"] == dacerf[env_id]["n_timesteps"], env_id
+        assert entry.get("learning_starts") == dacerf[env_id].get("learning_starts"), env_id
+    # Every entry uses the constructor defaults
+    for env_id in ["Pendulum-v1", *MUJOCO_IDS, *DMC_ENV_IDS, *DRIVING_IDS]:
+        assert set(dacer[env_id]) <= {"policy", "n_timesteps", "learning_starts"}, env_id
+
+
+def test_sampler_builds_dacer():
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(4):
+        trial = study.ask()
+        hyperparams = sample_dacer_params(trial, 1, 1, {}, policy_kwargs={"activation_fn": th.nn.ReLU})
+        assert convert_dacer_params(trial.params, {"activation_fn": th.nn.ReLU}) == hyperparams
+        model = DACER("MlpPolicy", "Pendulum-v1", buffer_size=1, **hyperparams)
+        assert model.actor.n_diffusion_steps == hyperparams["n_diffusion_steps"]
+        assert model.actor.activation_fn is th.nn.ReLU  # the YAML entry's policy_kwargs are kept
+        study.tell(trial, 0.0)
 
 
 def test_sampler_builds_dacerf():
@@ -182,6 +217,24 @@ def test_train_enjoy_record_video_continue(tmp_path):
     )
     assert "Loading pretrained agent" in resumed.stdout
     assert (tmp_path / "logs" / "dacerf" / "Pendulum-v1_2" / "Pendulum-v1.zip").is_file()
+
+
+def test_dacer_train_and_enjoy(tmp_path):
+    train = zoo(
+        "train",
+        *["--algo", "dacer", "--env", "Pendulum-v1", "-n", "150", "--seed", "0", "--num-threads", "1"],
+        *["--eval-freq", "100", "--eval-episodes", "1", "-f", "logs", "-params", *TINY_DACER],
+        cwd=tmp_path,
+    )
+    assert "dacer.yml" in train.stdout and "rl_zoo3/hyperparams" not in train.stdout
+    run = tmp_path / "logs" / "dacer" / "Pendulum-v1_1"
+    for name in ["Pendulum-v1.zip", "best_model.zip", "evaluations.npz"]:
+        assert (run / name).is_file(), name
+    model = DACER.load(run / "Pendulum-v1.zip")
+    assert model.actor.n_diffusion_steps == 5 and model.num_timesteps == 150
+    run_args = ["--algo", "dacer", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
+    enjoy = zoo("enjoy", *run_args, "-n", "50", "--no-render", cwd=tmp_path)
+    assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
 
 
 def test_sac_on_dmc_reads_package_yaml(tmp_path):

@@ -1,5 +1,6 @@
 """What the DACER-F and DACER policies share: a generative actor built by the subclass, twin critics and their targets."""
 
+from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import torch as th
@@ -18,12 +19,27 @@ from torch import nn
 from sb3_dacerf.common.optim import get_optimizer_class
 
 
-class GenerativeActor(BasePolicy):
+class GenerativeActor(BasePolicy, ABC):
     """
-    Base of the actors of this package: a network of ``(state features, action, time)`` that a sampler turns
-    from noise into an action in [-1, 1] (``squash_output``: the algorithm rescales to the action space's bounds).
+    Base of the actors of this package (:class:`sb3_dacerf.dacerf.policies.FlowActor` of DACERF,
+    :class:`sb3_dacerf.dacer.policies.DiffusionActor` of DACER): a generator that turns noise into an action in
+    [-1, 1] with a network ``network`` of (state features, action, time), and Gaussian exploration noise on top
+    (``squash_output``: the algorithm rescales [-1, 1] to the action space's bounds).
 
-    Subclasses implement ``forward(obs, deterministic)``.
+    The contract both actors follow:
+
+    - ``forward(obs, deterministic=False)``: actions in [-1, 1], as SB3's actors (``predict``, rollouts, the
+      critic target); :meth:`act` does the same from state features.
+    - :meth:`sample` ``(features, noise=None)``: the generator alone, a deterministic function of the noise,
+      differentiable with respect to the network, without exploration noise. ``noise=None`` is the noise's mean
+      (zeros): the deterministic action.
+    - :meth:`draw_noise` ``(features)``: random noise for :meth:`sample`, of shape ``(batch, *noise_shape)``.
+    - :meth:`add_exploration_noise` ``(actions)``: ``clip(a + exploration_std · ξ, -1, 1)``, ``ξ ~ N(0, I)``,
+      with ``exploration_std = exploration_noise_scale · exp(log_alpha)`` (none when ``log_alpha = -inf``).
+
+    Stochastic actions are ``add_exploration_noise(sample(features, draw_noise(features)))``; deterministic actions
+    are ``sample(features)``. A generative policy has no tractable log-density, hence no ``action_log_prob``: each
+    algorithm estimates the policy's entropy from samples.
 
     :param observation_space: Observation space
     :param action_space: Action space
@@ -34,9 +50,14 @@ class GenerativeActor(BasePolicy):
     :param activation_fn: Activation function
     :param normalize_images: Whether to normalize images or not,
          dividing by 255.0 (True by default)
+    :param exploration_noise_scale: Standard deviation of the exploration noise at ``α = exp(log_alpha) = 1``
     """
 
     action_space: spaces.Box
+    #: The generator's network of (state features, action, time), built by the subclass
+    network: nn.Sequential
+    #: ``log α`` of the entropy regulator: a buffer (saved with the policy), set and learned by the algorithm
+    log_alpha: th.Tensor
 
     def __init__(
         self,
@@ -47,6 +68,7 @@ class GenerativeActor(BasePolicy):
         features_dim: int,
         activation_fn: type[nn.Module] = nn.ReLU,
         normalize_images: bool = True,
+        exploration_noise_scale: float = 0.15,
     ):
         super().__init__(
             observation_space,
@@ -59,6 +81,9 @@ class GenerativeActor(BasePolicy):
         self.features_dim = features_dim
         self.activation_fn = activation_fn
         self.action_dim = get_action_dim(self.action_space)
+        self.exploration_noise_scale = exploration_noise_scale
+        # log α = 0 (α = 1) until the algorithm sets it
+        self.register_buffer("log_alpha", th.zeros(()))
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -68,12 +93,78 @@ class GenerativeActor(BasePolicy):
                 features_dim=self.features_dim,
                 activation_fn=self.activation_fn,
                 features_extractor=self.features_extractor,
+                exploration_noise_scale=self.exploration_noise_scale,
             )
         )
         return data
 
+    @property
+    @abstractmethod
+    def noise_shape(self) -> tuple[int, ...]:
+        """Shape of the noise :meth:`sample` takes for one state (without the batch dimension)."""
+
+    @abstractmethod
+    def sample(self, features: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
+        """
+        Generate actions from noise, without exploration noise.
+
+        :param features: State features ``(batch, features_dim)``
+        :param noise: ``(batch, *noise_shape)``, e.g. from :meth:`draw_noise`; ``None`` for zeros (the deterministic
+            action)
+        :return: Actions in [-1, 1] ``(batch, action_dim)``, differentiable with respect to the network
+        """
+
+    def draw_noise(self, features: th.Tensor) -> th.Tensor:
+        """
+        :param features: State features ``(batch, features_dim)``, for the batch size, device and dtype
+        :return: Standard normal noise ``(batch, *noise_shape)`` for :meth:`sample`
+        """
+        return th.randn((features.shape[0], *self.noise_shape), device=features.device, dtype=features.dtype)
+
+    @property
+    def exploration_std(self) -> th.Tensor:
+        """Standard deviation of the exploration noise added to stochastic actions: ``exploration_noise_scale · α``."""
+        return self.exploration_noise_scale * self.log_alpha.exp()
+
+    def add_exploration_noise(self, actions: th.Tensor) -> th.Tensor:
+        """
+        :param actions: Actions in [-1, 1]
+        :return: ``clip(actions + exploration_std · ξ, -1, 1)`` with ``ξ ~ N(0, I)``; ``actions`` itself when
+            ``log_alpha = -inf`` (no noise drawn)
+        """
+        if self.log_alpha.item() == float("-inf"):
+            return actions
+        return (actions + self.exploration_std * th.randn_like(actions)).clamp(-1.0, 1.0)
+
+    def act(self, features: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """
+        The policy's actions from state features: :meth:`forward` after the features extractor.
+
+        :param features: State features ``(batch, features_dim)``
+        :param deterministic: ``sample(features)`` (zero noise, no exploration noise) instead of sampling
+        :return: Actions in [-1, 1] ``(batch, action_dim)``
+        """
+        if deterministic:
+            return self.sample(features)
+        return self.add_exploration_noise(self.sample(features, self.draw_noise(features)))
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self.act(self.extract_features(obs, self.features_extractor), deterministic)
+
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self(observation, deterministic)
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        # Models saved by sb3_dacerf 0.1 named the network after its output: velocity_net (DACERF), noise_net (DACER)
+        for legacy_name in LEGACY_NETWORK_NAMES:
+            legacy_prefix = f"{prefix}{legacy_name}."
+            for key in [key for key in state_dict if key.startswith(legacy_prefix)]:
+                state_dict[f"{prefix}network.{key[len(legacy_prefix) :]}"] = state_dict.pop(key)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+#: Former names of :attr:`GenerativeActor.network` in saved models, renamed when they are loaded
+LEGACY_NETWORK_NAMES = ("velocity_net", "noise_net")
 
 
 class TwinCriticPolicy(BasePolicy):

@@ -8,7 +8,9 @@ import os
 import pathlib
 import warnings
 import zipfile
-from typing import Any, TypeVar
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar, TypeVar
 
 import cloudpickle
 import numpy as np
@@ -23,6 +25,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorch
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 from torch.nn import functional as F
 
+from sb3_dacerf.common.policies import GenerativeActor
 from sb3_dacerf.common.utils import atomic_path, non_finite_entries, save_path_with_suffix
 
 SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAlgorithm")
@@ -42,15 +45,47 @@ class UnsupportedActionSpaceError(AssertionError, TypeError):
     """
 
 
+@dataclass(frozen=True)
+class HyperparameterRule:
+    """
+    The valid values of a numeric hyper-parameter.
+
+    :param is_valid: Whether a finite number is valid
+    :param valid_range: The valid values in words, for the error message (e.g. ``"in (0, 1]"``)
+    """
+
+    is_valid: Callable[[Any], bool]
+    valid_range: str
+
+    def check(self, name: str, value: Any) -> None:
+        """Raise a ``ValueError`` naming ``name``, ``value`` and the valid range unless ``value`` is a valid finite number."""
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+            raise ValueError(f"Invalid {name}={value!r}: it must be {self.valid_range}.")
+        if not math.isfinite(value):
+            raise ValueError(f"Invalid {name}={value!r}: it must be a finite number, {self.valid_range}.")
+        if not self.is_valid(value):
+            raise ValueError(f"Invalid {name}={value!r}: it must be {self.valid_range}.")
+
+
+def integer_at_least(minimum: int, valid_range: str | None = None) -> HyperparameterRule:
+    """The rule of a count: an integer ``>= minimum`` (``valid_range`` describes it, ``"an integer >= minimum"`` by default)."""
+    return HyperparameterRule(
+        lambda value: isinstance(value, (int, np.integer)) and value >= minimum,
+        f"an integer >= {minimum}" if valid_range is None else valid_range,
+    )
+
+
 class TwinCriticAlgorithm(OffPolicyAlgorithm):
     """
     Base of the generative-policy actor-critics of this package: an actor ``policy.actor`` that samples actions
     in [-1, 1] when called on observations, and twin critics ``policy.critic`` with targets ``policy.critic_target``.
 
     Subclasses take their own hyper-parameters (``policy_delay`` among them), pass the others on to this
-    constructor, then call ``_setup_model()``, which first checks every hyper-parameter of ``HYPERPARAMETER_RULES``
-    found on the algorithm or in ``policy_kwargs``. They implement ``train()`` with :meth:`_update_critic` and
-    :meth:`_update_targets` around their actor update.
+    constructor, then call ``_setup_model()``, which first calls :meth:`_check_hyperparameters`: each rule of the
+    class attribute ``hyperparameter_rules`` is checked against the hyper-parameter of its name. A subclass adds the
+    rules of its own hyper-parameters to it (``{**TwinCriticAlgorithm.hyperparameter_rules, ...}``) and overrides
+    :meth:`_check_hyperparameters` for checks a range cannot express. Subclasses implement ``train()`` with
+    :meth:`_update_critic` and :meth:`_update_targets` around their actor update.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
     :param env: The environment to learn from (if registered in Gym, can be str)
@@ -63,8 +98,17 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         ``policy_kwargs``, ``stats_window_size``, ``tensorboard_log``, ``verbose``, ``device``, ``seed``
     """
 
+    #: Valid values of the numeric hyper-parameters, checked before the model is built: name -> rule. The value
+    #: checked is the entry of ``policy_kwargs`` of that name if there is one (e.g. ``n_sampling_steps``), else the
+    #: algorithm's attribute.
+    hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
+        "batch_size": integer_at_least(1, "a positive integer"),
+        "tau": HyperparameterRule(lambda value: 0 < value <= 1, "in (0, 1]"),
+        "gamma": HyperparameterRule(lambda value: 0 <= value <= 1, "in [0, 1]"),
+    }
+
     policy: BasePolicy
-    actor: BasePolicy
+    actor: GenerativeActor
     critic: ContinuousCritic
     critic_target: ContinuousCritic
 
@@ -85,13 +129,21 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         # Before anything is built: a wrong value fails here, with its valid range
-        hyperparameters = {**vars(self), **self.policy_kwargs}
-        check_hyperparameters(**{name: value for name, value in hyperparameters.items() if name in HYPERPARAMETER_RULES})
+        self._check_hyperparameters()
         super()._setup_model()
         self._create_aliases()
         # Running mean and running var
         self.batch_norm_stats = get_parameters_by_name(self.critic, ["running_"])
         self.batch_norm_stats_target = get_parameters_by_name(self.critic_target, ["running_"])
+
+    def _check_hyperparameters(self) -> None:
+        """
+        Check every hyper-parameter named in ``hyperparameter_rules``.
+
+        :raises ValueError: naming the first invalid value and its valid range
+        """
+        for name, rule in self.hyperparameter_rules.items():
+            rule.check(name, self.policy_kwargs[name] if name in self.policy_kwargs else getattr(self, name))
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -271,7 +323,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         """
         See :meth:`BaseAlgorithm.load`; a file saved by another algorithm (e.g. SAC) is refused with its name.
         """
-        policy_class = _saved_policy_class(path)
+        policy_class = saved_policy_class(path)
         expected = cls.policy_aliases["MlpPolicy"]
         if isinstance(policy_class, type) and not issubclass(policy_class, expected):
             algorithm = _algorithm_of(policy_class)
@@ -289,7 +341,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         return state_dicts, []
 
 
-def _saved_policy_class(path: Any) -> type | None:
+def saved_policy_class(path: Any) -> type | None:
     """The policy class recorded in a model zip, or ``None`` when it cannot be read (SB3's load then reports why)."""
     if not isinstance(path, (str, os.PathLike)):
         return None
@@ -333,16 +385,21 @@ def check_action_space(action_space: spaces.Space, algorithm: str) -> None:
         )
 
 
-def check_hyperparameters(**values: Any) -> None:
-    """Reject hyper-parameters outside their valid range (or not finite) with a message naming the range."""
-    for name, value in values.items():
-        is_valid, valid_range = HYPERPARAMETER_RULES[name]
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
-            raise ValueError(f"Invalid {name}={value!r}: it must be {valid_range}.")
-        if not math.isfinite(value):
-            raise ValueError(f"Invalid {name}={value!r}: it must be a finite number, {valid_range}.")
-        if not is_valid(value):
-            raise ValueError(f"Invalid {name}={value!r}: it must be {valid_range}.")
+def resolve_target_entropy(target_entropy: Any, auto: float) -> float:
+    """
+    The target entropy as a float: ``auto`` for ``"auto"``, else the given finite number.
+
+    :raises ValueError: for anything else, naming the valid values
+    """
+    if isinstance(target_entropy, str) and target_entropy == "auto":
+        return auto
+    if (
+        isinstance(target_entropy, bool)
+        or not isinstance(target_entropy, (int, float, np.number))
+        or not math.isfinite(target_entropy)
+    ):
+        raise ValueError(f"Invalid target_entropy={target_entropy!r}: it must be 'auto' or a finite number (e.g. -dim(A)).")
+    return float(target_entropy)
 
 
 def merge_policy_kwarg(policy_kwargs: dict[str, Any], name: str, value: Any, default: Any, algorithm: str) -> dict[str, Any]:
@@ -357,24 +414,3 @@ def merge_policy_kwarg(policy_kwargs: dict[str, Any], name: str, value: Any, def
             f"give {name} once, as an argument of {algorithm}(...) or in policy_kwargs."
         )
     return {**policy_kwargs, name: value if value is not None else policy_kwargs.get(name, default)}
-
-
-def _is_count(value: Any, minimum: int) -> bool:
-    return isinstance(value, (int, np.integer)) and value >= minimum
-
-
-HYPERPARAMETER_RULES = {
-    "batch_size": (lambda v: _is_count(v, 1), "a positive integer"),
-    "tau": (lambda v: 0 < v <= 1, "in (0, 1]"),
-    "gamma": (lambda v: 0 <= v <= 1, "in [0, 1]"),
-    "policy_delay": (lambda v: _is_count(v, 1), "an integer >= 1"),
-    "langevin_steps": (lambda v: _is_count(v, 0), "an integer >= 0 (0 uses a_B as target)"),
-    "langevin_step_size": (lambda v: v > 0, "> 0"),
-    "langevin_temperature": (lambda v: v >= 0, ">= 0 (0 is noise-free gradient ascent)"),
-    "n_sampling_steps": (lambda v: _is_count(v, 1), "an integer >= 1"),
-    "flow_matching_coef": (lambda v: v >= 0, ">= 0"),
-    "n_diffusion_steps": (lambda v: _is_count(v, 1), "an integer >= 1"),
-    "alpha_learning_rate": (lambda v: v > 0, "> 0"),
-    "alpha_update_interval": (lambda v: _is_count(v, 1), "an integer >= 1"),
-    "entropy_samples": (lambda v: _is_count(v, 3), "an integer >= 3 (the entropy estimate fits 3 Gaussians)"),
-}

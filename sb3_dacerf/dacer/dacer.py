@@ -2,10 +2,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 
-from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, merge_policy_kwarg
+from sb3_dacerf.common.twin_critic import (
+    HyperparameterRule,
+    TwinCriticAlgorithm,
+    integer_at_least,
+    merge_policy_kwarg,
+    resolve_target_entropy,
+)
 from sb3_dacerf.common.utils import frozen
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
 from sb3_dacerf.dacer.policies import CnnPolicy, DACERPolicy, DiffusionActor, MlpPolicy, MultiInputPolicy
@@ -32,29 +40,59 @@ class DACER(TwinCriticAlgorithm):
     :param env: The environment to learn from (if registered in Gym, can be str)
     :param learning_rate: learning rate for the optimizer of the actor and of the critics,
         it can be a function of the current progress remaining (from 1 to 0)
+    :param buffer_size: size of the replay buffer
+    :param learning_starts: how many steps of the model to collect transitions for before learning starts
+    :param batch_size: Minibatch size for each gradient update
     :param tau: the soft update coefficient ("Polyak update", between 0 and 1)
+    :param gamma: the discount factor
+    :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
+        like ``(5, "step")`` or ``(2, "episode")``.
+    :param gradient_steps: How many gradient steps to do after each rollout (see ``train_freq``)
+        Set to ``-1`` means to do as many gradient steps as steps done in the environment
+        during the rollout.
+    :param action_noise: the action noise type (None by default), added on top of the policy's own exploration
+        noise during rollouts
+    :param replay_buffer_class: Replay buffer class to use (for instance ``HerReplayBuffer``).
+        If ``None``, it will be automatically selected.
+    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
+        at a cost of more complexity.
+    :param n_steps: When n_step > 1, uses n-step return (with the NStepReplayBuffer) when updating the Q-value network.
     :param policy_delay: Policy and target network updates happen once every ``policy_delay`` critic updates
     :param n_diffusion_steps: Number of reverse diffusion steps per action (20 in both papers); also accepted in
         ``policy_kwargs``, 20 if given in neither
+    :param target_entropy: Target entropy of the policy; ``"auto"`` is ``-0.9 * action_dim``
     :param alpha_learning_rate: Learning rate (Adam) of ``log α``
     :param initial_log_alpha: Initial ``log α`` (the exploration noise starts at ``0.15 exp(initial_log_alpha)``)
-    :param target_entropy: Target entropy of the policy; ``"auto"`` is ``-0.9 * action_dim``
     :param alpha_update_interval: The entropy is estimated and ``α`` updated once every that many updates
         (at the first update, then every ``alpha_update_interval``)
     :param entropy_samples: Number of actions sampled per state for the entropy estimate
+    :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
+        the reported success rate, mean episode length, and mean reward over
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
         ``dict(net_arch=[256, 256], beta_schedule="linear", exploration_noise_scale=0.1)``
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
+        debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run.
+        Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
-    :param kwargs: The other arguments of SB3's ``OffPolicyAlgorithm`` (``buffer_size``, ``learning_starts``,
-        ``batch_size``, ``gamma``, ``train_freq``, ``gradient_steps``, ``action_noise`` (added on top of the
-        policy's own exploration noise), ``seed``, ``device``, ...), with SAC's defaults: see
-        :class:`sb3_dacerf.common.twin_critic.TwinCriticAlgorithm`
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
         "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
+    }
+    #: DACER's own hyper-parameters with their valid values, besides those of every algorithm of the package
+    hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
+        **TwinCriticAlgorithm.hyperparameter_rules,
+        "policy_delay": integer_at_least(1),
+        "n_diffusion_steps": integer_at_least(1),
+        "alpha_learning_rate": HyperparameterRule(lambda value: value > 0, "> 0"),
+        "alpha_update_interval": integer_at_least(1),
+        "entropy_samples": integer_at_least(3, "an integer >= 3 (the entropy estimate fits 3 Gaussians)"),
     }
     policy: DACERPolicy
     actor: DiffusionActor
@@ -64,9 +102,18 @@ class DACER(TwinCriticAlgorithm):
         policy: str | type[DACERPolicy],
         env: GymEnv | str,
         learning_rate: float | Schedule = 3e-4,
-        *,
-        policy_kwargs: dict[str, Any] | None = None,
+        buffer_size: int = 1_000_000,  # 1e6
+        learning_starts: int = 100,
+        batch_size: int = 256,
         tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
         policy_delay: int = 2,
         n_diffusion_steps: int | None = None,
         target_entropy: str | float = "auto",
@@ -74,10 +121,37 @@ class DACER(TwinCriticAlgorithm):
         initial_log_alpha: float = 1.2,
         alpha_update_interval: int = 10_000,
         entropy_samples: int = 200,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
         _init_setup_model: bool = True,
-        **kwargs: Any,
     ):
-        super().__init__(policy, env, learning_rate, tau=tau, policy_kwargs=policy_kwargs, **kwargs)
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+        )
 
         # A copy: the caller's policy_kwargs dict stays reusable
         self.policy_kwargs = merge_policy_kwarg(self.policy_kwargs, "n_diffusion_steps", n_diffusion_steps, 20, "DACER")
@@ -95,9 +169,7 @@ class DACER(TwinCriticAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        if self.target_entropy == "auto":
-            self.target_entropy = -0.9 * float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
-        self.target_entropy = float(self.target_entropy)
+        self.target_entropy = resolve_target_entropy(self.target_entropy, -0.9 * float(np.prod(self.action_space.shape)))  # type: ignore[arg-type]
         # log α lives in the actor (it sets the exploration noise of predict()); only this optimizer changes it
         self.actor.log_alpha.fill_(self.initial_log_alpha)
         self.alpha_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.alpha_learning_rate)
@@ -153,7 +225,7 @@ class DACER(TwinCriticAlgorithm):
         a 3-component Gaussian mixture fitted to those of each state, its entropy averaged over the states.
         """
         features = self.actor.extract_features(observations, self.actor.features_extractor)
-        actions = self.actor.sample(features.repeat_interleave(self.entropy_samples, dim=0))
+        actions = self.actor.act(features.repeat_interleave(self.entropy_samples, dim=0))
         return gaussian_mixture_entropy(actions.view(features.shape[0], self.entropy_samples, -1)).mean().item()
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -1,3 +1,4 @@
+import functools
 import math
 from typing import Any, ClassVar
 
@@ -10,9 +11,15 @@ from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
 from sb3_dacerf.common.langevin import MinQActionGradient, compiled_langevin_targets, langevin_targets
-from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, merge_policy_kwarg
+from sb3_dacerf.common.twin_critic import (
+    HyperparameterRule,
+    TwinCriticAlgorithm,
+    integer_at_least,
+    merge_policy_kwarg,
+    resolve_target_entropy,
+)
 from sb3_dacerf.common.utils import frozen
-from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, MlpPolicy, MultiInputPolicy, VelocityField
+from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, FlowActor, MlpPolicy, MultiInputPolicy
 
 
 class DACERF(TwinCriticAlgorithm):
@@ -93,13 +100,23 @@ class DACERF(TwinCriticAlgorithm):
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
-    policy: DACERFPolicy
-    actor: VelocityField
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
         "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
     }
+    #: DACER-F's own hyper-parameters with their valid values, besides those of every algorithm of the package
+    hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
+        **TwinCriticAlgorithm.hyperparameter_rules,
+        "policy_delay": integer_at_least(1),
+        "langevin_steps": integer_at_least(0, "an integer >= 0 (0 uses a_B as target)"),
+        "langevin_step_size": HyperparameterRule(lambda value: value > 0, "> 0"),
+        "langevin_temperature": HyperparameterRule(lambda value: value >= 0, ">= 0 (0 is noise-free gradient ascent)"),
+        "n_sampling_steps": integer_at_least(1),
+        "flow_matching_coef": HyperparameterRule(lambda value: value >= 0, ">= 0"),
+    }
+    policy: DACERFPolicy
+    actor: FlowActor
 
     def __init__(
         self,
@@ -182,8 +199,8 @@ class DACERF(TwinCriticAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
-    def _setup_model(self) -> None:
-        super()._setup_model()
+    def _check_hyperparameters(self) -> None:
+        super()._check_hyperparameters()
         if self.flow_matching_weights not in FLOW_MATCHING_WEIGHTS:
             raise ValueError(
                 f"Invalid flow_matching_weights={self.flow_matching_weights!r}: "
@@ -191,17 +208,10 @@ class DACERF(TwinCriticAlgorithm):
             )
         if self.entropy_estimate not in ("fit", "noise"):
             raise ValueError(f"Invalid entropy_estimate={self.entropy_estimate!r}: it must be 'fit' or 'noise'.")
-        if self.target_entropy == "auto":
-            self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
-        elif (
-            isinstance(self.target_entropy, bool)
-            or not isinstance(self.target_entropy, (int, float, np.number))
-            or not math.isfinite(self.target_entropy)
-        ):
-            raise ValueError(
-                f"Invalid target_entropy={self.target_entropy!r}: it must be 'auto' or a finite number (e.g. -dim(A))."
-            )
-        self.target_entropy = float(self.target_entropy)
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self.target_entropy = resolve_target_entropy(self.target_entropy, -float(np.prod(self.action_space.shape)))  # type: ignore[arg-type]
         initial_ent_coef = self._initial_ent_coef()
         self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
         if self._learns_ent_coef():
@@ -245,20 +255,21 @@ class DACERF(TwinCriticAlgorithm):
         critic_losses: list[float] = []
         actor_logs: dict[str, list[float]] = {}
 
+        # One iteration of Algorithm 2 per gradient step (the interaction steps are collect_rollouts())
         for _ in range(gradient_steps):
             self._n_updates += 1
-            # Replay: a batch (s, a_B, r, s', done), actions a_B in [-1, 1]
+            # Replay: sample a batch (s, a_B, r, s', done) from the buffer B, actions a_B in [-1, 1]
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
 
-            # Critic update, J_Q: y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s') with the exploration noise
+            # Critic update: minimise J_Q(φ_i), target y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s')
             critic_losses.append(self._update_critic(replay_data))
 
-            # Actor (and α) update, every `policy_delay` critic updates
+            # Actor update: minimise J_F(θ) (and step α), every `policy_delay` critic updates
             if self._n_updates % self.policy_delay == 0:
                 for key, value in self._update_actor(replay_data).items():
                     actor_logs.setdefault(key, []).append(value)
 
-            # Target networks: Q̄ <- (1 - τ) Q̄ + τ Q
+            # Update target networks: φ̄_i <- (1 - τ) φ̄_i + τ φ_i
             self._update_targets()
 
         self.logger.record("train/n_updates", self._n_updates)
@@ -293,13 +304,13 @@ class DACERF(TwinCriticAlgorithm):
                 q_values_star = self._min_q(observations, actions_star)
                 q_values_buffer = self._min_q(observations, actions_buffer)
 
-            # Policy improvement term: -Q(s, π(s)), through the sampler (no exploration noise)
+            # Policy improvement term: -Q(s, π_θ(s)), through the sampler from a_0 ~ N(0, I) (no exploration noise)
             features = self.actor.extract_features(observations, self.actor.features_extractor)
-            actions_pi = self.actor.sample(features, th.randn_like(actions_star))
+            actions_pi = self.actor.sample(features, self.actor.draw_noise(features))
             q_values_pi = self._min_q(observations, actions_pi)
 
-            # Flow-matching (imitation) term towards a*, weighted by λ_f ∝ the Langevin gain
-            flow_error = flow_matching_loss(lambda actions_t, time: self.actor.velocity(features, actions_t, time), actions_star)
+            # Flow-matching (imitation) term ||v_θ(s, a_t, t) - (a* - a_0)||² towards a*, weighted by λ_f ∝ the gain
+            flow_error = flow_matching_loss(functools.partial(self.actor.velocity, features), actions_star)
             kappa, lambda_f = actor_loss_weights(
                 self.flow_matching_weights, q_values_pi, q_values_star, q_values_buffer, self.flow_matching_coef
             )
@@ -369,7 +380,7 @@ class DACERF(TwinCriticAlgorithm):
         averaged over action dimensions and states (0 = a deterministic flow).
         """
         features = features[:n_states].repeat_interleave(n_samples, dim=0)
-        actions = self.actor.sample(features, th.randn((features.shape[0], self.actor.action_dim), device=features.device))
+        actions = self.actor.sample(features, self.actor.draw_noise(features))
         variance = actions.view(-1, n_samples, self.actor.action_dim).var(dim=1)  # (n_states, action_dim)
         spread = variance.sqrt().mean().item()
         noise_variance = self.actor.exploration_std.pow(2)

@@ -1,0 +1,230 @@
+"""
+What DACER and DACERF share, tested on both (``model_class``, see conftest.py): the SB3 algorithm interface
+(constructor, learn, predict, save and load, observation spaces), the generative actor interface, and the
+hyper-parameter checks.
+"""
+
+import copy
+import inspect
+import json
+import math
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import SAC
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.envs import FakeImageEnv, SimpleMultiObsEnv
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+
+from sb3_dacerf import DACER, DACERF
+from sb3_dacerf.common.policies import LEGACY_NETWORK_NAMES, GenerativeActor
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
+
+DATA = Path(__file__).parent / "data"
+# SAC's own options, which a generative policy has no use for
+SAC_ONLY = {"ent_coef", "target_update_interval", "use_sde", "sde_sample_freq", "use_sde_at_warmup"}
+# Arguments with the same meaning and default value as SAC's (the plumbing of SB3's OffPolicyAlgorithm)
+SB3_ARGUMENTS = [
+    "buffer_size",
+    "train_freq",
+    "gradient_steps",
+    "action_noise",
+    "replay_buffer_class",
+    "replay_buffer_kwargs",
+    "optimize_memory_usage",
+    "n_steps",
+    "stats_window_size",
+    "tensorboard_log",
+    "policy_kwargs",
+    "verbose",
+    "seed",
+    "device",
+    "_init_setup_model",
+]
+
+
+def observations(model, n: int = 16) -> np.ndarray:
+    return np.stack([model.observation_space.sample() for _ in range(n)])
+
+
+def test_constructor_arguments_are_explicit(model_class):
+    parameters = inspect.signature(model_class).parameters
+    kinds = {parameter.kind for parameter in parameters.values()}
+    assert inspect.Parameter.VAR_KEYWORD not in kinds and inspect.Parameter.VAR_POSITIONAL not in kinds
+    sac = inspect.signature(SAC).parameters
+    assert set(sac) - SAC_ONLY <= set(parameters)
+    for name in SB3_ARGUMENTS:
+        assert parameters[name].default == sac[name].default, name
+    # The algorithm's own arguments are kept (and saved): as attributes, or in policy_kwargs for those of the policy
+    model = model_class("MlpPolicy", "Pendulum-v1", buffer_size=1)
+    for name in set(parameters) - set(inspect.signature(OffPolicyAlgorithm).parameters) - {"_init_setup_model"}:
+        assert hasattr(model, name) or name in model.policy_kwargs, name
+
+
+def test_hyperparameter_rules_belong_to_their_algorithm(model_class):
+    rules = model_class.hyperparameter_rules
+    assert set(TwinCriticAlgorithm.hyperparameter_rules) <= set(rules)
+    assert set(rules) <= set(inspect.signature(model_class).parameters)
+    # Each algorithm checks its own hyper-parameters only: policy_delay is the one they both have
+    shared = set(TwinCriticAlgorithm.hyperparameter_rules)
+    assert (set(DACER.hyperparameter_rules) - shared) & (set(DACERF.hyperparameter_rules) - shared) == {"policy_delay"}
+
+
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("tau", 0.0),
+        ("tau", 1.5),
+        ("gamma", 1.2),
+        ("batch_size", 0),
+        ("batch_size", 2.0),
+        ("policy_delay", 0),
+        ("policy_delay", float("nan")),
+        ("target_entropy", "high"),
+        ("target_entropy", float("inf")),
+    ],
+)
+def test_invalid_shared_hyperparameters_name_their_valid_range(model_class, name, value):
+    with pytest.raises(ValueError, match=f"Invalid {name}="):
+        model_class("MlpPolicy", "Pendulum-v1", **{name: value})
+
+
+def test_learns_and_logs(model_class, fast, tmp_path):
+    model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(200, log_interval=1)
+    header = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
+    for key in ("critic_loss", "actor_loss", "n_updates"):
+        assert f"train/{key}" in header
+    assert model._n_updates == 150
+
+
+def test_save_load_gives_identical_predictions(model_class, fast, tmp_path):
+    model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
+    model.learn(100)
+    obs = observations(model)
+    actions, _ = model.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], actions)
+    assert not np.array_equal(model.predict(obs)[0], actions)
+
+    model.save(tmp_path / "model")
+    loaded = model_class.load(tmp_path / "model")
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], actions)
+    assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item()
+
+    # The policy alone (sb3-contrib's test_save_load_policy), and the actor alone
+    model.policy.save(tmp_path / "policy.pkl")
+    policy = type(model.policy).load(tmp_path / "policy.pkl")
+    np.testing.assert_array_equal(policy.predict(obs, deterministic=True)[0], actions)
+    model.actor.save(tmp_path / "actor.pkl")
+    actor = type(model.actor).load(tmp_path / "actor.pkl")
+    np.testing.assert_array_equal(actor.predict(obs, deterministic=True)[0], model.actor.predict(obs, deterministic=True)[0])
+
+
+@pytest.mark.parametrize("name", ["dacerf", "dacer"])
+def test_models_saved_by_version_0_1_0_load_and_act_alike(name):
+    """Zips written by sb3_dacerf 0.1.0, whose actor networks were named ``velocity_net`` and ``noise_net``."""
+    expected = json.loads((DATA / "models_0.1.0" / "expected_actions.json").read_text())
+    model_class = {"dacerf": DACERF, "dacer": DACER}[name]
+    model = model_class.load(DATA / "models_0.1.0" / f"{name}.zip")
+    obs = np.array(expected["observations"], dtype=np.float32)
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], np.array(expected[name], dtype=np.float32))
+    model.set_env(gym.make("Pendulum-v1"))
+    model.learn(20, reset_num_timesteps=False)  # and the loaded optimizers go on
+
+
+def test_legacy_network_names_are_renamed_on_load(model_class, fast):
+    model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
+    state = {key: value.clone() for key, value in model.policy.state_dict().items()}
+    for legacy_name in LEGACY_NETWORK_NAMES:
+        legacy = {key.replace("actor.network.", f"actor.{legacy_name}."): value.clone() + 1.0 for key, value in state.items()}
+        model.policy.load_state_dict(legacy)
+        for key, value in model.policy.state_dict().items():
+            assert th.equal(value, state[key] + 1.0), key
+    with pytest.raises(RuntimeError, match="Unexpected key"):  # strict loading still refuses unknown keys
+        model.policy.load_state_dict({**state, "actor.other_net.0.weight": th.zeros(1)})
+
+
+def test_predict_shapes_and_bounds(model_class, fast):
+    env = make_vec_env("MountainCarContinuous-v0", n_envs=2, seed=0)
+    model = model_class("MlpPolicy", env, seed=0, **fast)
+    observation = env.observation_space.sample()
+    assert model.predict(observation)[0].shape == (1,)
+    actions, _ = model.predict(np.stack([observation] * 7))
+    assert actions.shape == (7, 1) and np.all(np.abs(actions) <= 1)
+    assert model.predict(env.reset())[0].shape == (2, 1)
+
+
+def test_image_and_dict_observations(model_class, fast):
+    env = FakeImageEnv(action_dim=2, screen_height=40, screen_width=40, n_channels=1, discrete=False)
+    model = model_class("CnnPolicy", env, seed=0, **{**fast, "learning_starts": 20, "batch_size": 8, "buffer_size": 200})
+    model.learn(30)
+    action, _ = model.predict(env.observation_space.sample(), deterministic=True)
+    assert action.shape == env.action_space.shape and env.action_space.contains(action)
+
+    env = SimpleMultiObsEnv(random_start=False, discrete_actions=False)
+    model = model_class("MultiInputPolicy", env, seed=0, **fast)
+    model.learn(60)
+    assert model.predict(env.observation_space.sample(), deterministic=True)[0].shape == env.action_space.shape
+
+
+def test_same_seed_same_training(model_class, fast):
+    def train(seed: int) -> list[th.Tensor]:
+        model = model_class("MlpPolicy", "Pendulum-v1", seed=seed, **fast)
+        model.learn(100)
+        return [p.detach().clone() for p in model.policy.parameters()]
+
+    first, second, other = train(3), train(3), train(4)
+    assert all(th.equal(a, b) for a, b in zip(first, second))
+    assert not all(th.equal(a, b) for a, b in zip(first, other))
+
+
+def test_discrete_actions_are_refused_with_advice(model_class):
+    with pytest.raises(TypeError, match=f"{model_class.__name__} needs a continuous action space.*Discrete\\(2\\).*DQN"):
+        model_class("MlpPolicy", "CartPole-v1")
+
+
+def test_actor_interface(model_class, fast):
+    """The contract of GenerativeActor: sample(features, noise), draw_noise, add_exploration_noise, act, forward."""
+    model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
+    actor = model.actor
+    assert isinstance(actor, GenerativeActor)
+    obs = th.as_tensor(observations(model, 64))
+    features = actor.extract_features(obs, actor.features_extractor)
+
+    noise = actor.draw_noise(features)
+    assert noise.shape == (64, *actor.noise_shape)
+    assert th.equal(actor.sample(features, noise), actor.sample(features, noise))  # a function of the noise
+    assert not th.equal(actor.sample(features, noise), actor.sample(features, actor.draw_noise(features)))
+    assert th.equal(actor.sample(features), actor.sample(features, th.zeros_like(noise)))
+    assert th.equal(actor(obs, deterministic=True), actor.sample(features))
+    assert th.equal(actor.act(features, deterministic=True), actor.sample(features))
+
+    # A stochastic action: the generator's sample, then the exploration noise
+    th.manual_seed(5)
+    stochastic = actor(obs)
+    th.manual_seed(5)
+    expected = actor.add_exploration_noise(actor.sample(features, actor.draw_noise(features)))
+    assert th.equal(stochastic, expected)
+    assert stochastic.abs().max() <= 1.0
+    # ... N(0, exploration_std²), clipped
+    clean = actor.sample(features, actor.draw_noise(features))
+    state = th.get_rng_state()
+    xi = th.randn_like(clean)
+    th.set_rng_state(state)
+    assert th.equal(actor.add_exploration_noise(clean), (clean + actor.exploration_std * xi).clamp(-1, 1))
+
+    # No exploration noise (and no random draw) at α = 0
+    quiet = copy.deepcopy(actor)
+    quiet.log_alpha.fill_(-math.inf)
+    state = th.get_rng_state()
+    assert quiet.add_exploration_noise(clean) is clean
+    assert th.equal(th.get_rng_state(), state)
+
+    # The sample is differentiable with respect to the generator's network, through all its steps
+    actor.sample(features, noise).sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.network.parameters())
