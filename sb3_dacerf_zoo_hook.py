@@ -1,10 +1,10 @@
 """
-Start-up hook that makes ``python -m rl_zoo3.train --algo dacerf ...`` work with no wrapper script.
+Start-up hook that makes ``python -m rl_zoo3.train --algo dacerf ...`` (and ``--algo dacer``) work with no wrapper script.
 
 ``pip install`` puts ``sb3_dacerf_zoo.pth`` (Python <= 3.14) and ``sb3_dacerf_zoo.start`` (PEP 829, Python >= 3.15)
 in site-packages; both call :func:`install` at interpreter start. That only adds a finder to ``sys.meta_path``
 and imports nothing: when RL Zoo's ``utils``, ``hyperparams_opt`` or ``exp_manager`` module has been executed,
-:func:`sb3_dacerf.zoo.register` adds DACERF to it. Set ``SB3_DACERF_NO_ZOO_HOOK=1`` to turn the hook off.
+:func:`sb3_dacerf.zoo.register` adds DACERF and DACER to it. Set ``SB3_DACERF_NO_ZOO_HOOK=1`` to turn the hook off.
 """
 
 import os
@@ -21,7 +21,7 @@ ZOO_MODULES = frozenset({"rl_zoo3.utils", "rl_zoo3.hyperparams_opt", "rl_zoo3.ex
 
 
 class _RegisteringLoader:
-    """Runs the module with its own loader, then lets ``sb3_dacerf.zoo`` register DACERF in it."""
+    """Runs the module with its own loader, then lets ``sb3_dacerf.zoo`` register DACERF and DACER in it."""
 
     def __init__(self, loader: "Any") -> None:
         self.loader = loader

@@ -29,7 +29,8 @@ class DACERF(TwinCriticAlgorithm):
     A flow-matching policy that generates an action in one Euler step, trained towards targets ``a*``
     obtained by Langevin dynamics on the critic (``p(a|s) ∝ exp(Q(s, a) / α)``) started from replay actions,
     plus the usual ``-Q(s, π(s))`` improvement term; twin critics with target networks as in TD3/SAC.
-    Paper: "DACER-F: Langevin-guided flow matching for real-time autonomous driving", arXiv:2603.02613.
+    Paper: "Real-Time Generative Policy via Langevin-Guided Flow Matching for Autonomous Driving" (DACER-F),
+    arXiv:2603.02613.
 
     The actor loss is ``J_F = mean(-Q(s, π(s)) / κ + λ_f ||v(s, a_t, t) - (a* - a_0)||²)`` with the paper's
     advantage weighting ``λ_f ∝ g = ReLU(Q(s, a*) - Q(s, a_B))`` per sample, normalised by its batch mean; by default
@@ -60,7 +61,7 @@ class DACERF(TwinCriticAlgorithm):
         Set to ``-1`` means to do as many gradient steps as steps done in the environment
         during the rollout.
     :param action_noise: the action noise type (None by default), added to the flow policy's own samples
-        during rollouts (extra exploration, see the README's "Exploration" section)
+        during rollouts (extra exploration, see "Exploration with a one-step flow" in the DACERF documentation page)
     :param replay_buffer_class: Replay buffer class to use (for instance ``HerReplayBuffer``).
         If ``None``, it will be automatically selected.
     :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
