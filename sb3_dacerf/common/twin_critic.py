@@ -240,7 +240,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
             tables = (self.logger.name_to_value, self.logger.name_to_count, self.logger.name_to_excluded)
             logged = [dict(table) for table in tables]
             self.dump_logs()
-            for table, values in zip(tables, logged):
+            for table, values in zip(tables, logged, strict=True):
                 table.update(values)
         if self._n_updates == n_updates and self.num_timesteps > self._num_timesteps_at_start:
             name = type(self).__name__

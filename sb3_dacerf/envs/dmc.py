@@ -101,7 +101,7 @@ class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, Any, np.ndarray]):
     :param environment_kwargs: passed to ``dm_control.suite.load``
     """
 
-    metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "render_fps": 50}
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012  (gymnasium.Env declares it without ClassVar)
 
     def __init__(
         self,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from typing import ClassVar
 
 import numpy as np
 from gymnasium import logger
@@ -75,9 +76,9 @@ class PaperDrivingMixin:
     :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
     """
 
-    DENSITY_CONFIGS: dict[str, dict] = {}
+    DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}
     """Config overrides of each traffic density."""
-    CONFIG_RULES: dict[str, Rule] = {}
+    CONFIG_RULES: ClassVar[dict[str, Rule]] = {}
     """Type and range checks of the scenario's own config keys (see :mod:`.config`)."""
 
     reference: ReferencePath

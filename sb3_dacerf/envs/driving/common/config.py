@@ -59,7 +59,7 @@ def interval(low: float | None = None, high: float | None = None, *, contains_ze
         lo, hi = value
         if not (_is_number(lo) and _is_number(hi)) or not lo <= hi:
             return expected
-        if low is not None and lo < low or high is not None and hi > high:
+        if (low is not None and lo < low) or (high is not None and hi > high):
             return expected
         if contains_zero and not lo <= 0 <= hi:
             return expected
