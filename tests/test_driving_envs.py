@@ -384,6 +384,17 @@ def test_step_before_reset_and_after_the_end():
         env.step(np.zeros(2, dtype=np.float32))
 
 
+def test_scripted_driver_takes_only_the_driving_envs():
+    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+    with pytest.raises(TypeError, match=r"ScriptedDriver drives DACERF-Multilane-v0.*got PendulumEnv"):
+        ScriptedDriver(gym.make("Pendulum-v1"))
+    env = make("DACERF-Intersection-v0")
+    obs, _ = env.reset(seed=0)
+    action = ScriptedDriver(env)(obs)
+    assert action.shape == (2,) and np.all(action >= env.action_space.low) and np.all(action <= env.action_space.high)
+
+
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_check_env(env_id):
     from gymnasium.utils.env_checker import check_env as gym_check_env

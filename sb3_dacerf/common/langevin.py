@@ -172,11 +172,12 @@ def _hidden_blocks(network: nn.Module) -> tuple[list[tuple[nn.Linear, nn.LayerNo
     if not isinstance(network, nn.Sequential):
         return None
     modules = list(network)
-    blocks = []
+    blocks: list[tuple[nn.Linear, nn.LayerNorm | None, nn.Module]] = []
     index = 0
     while index < len(modules) - 1:
         linear = modules[index]
-        norm = modules[index + 1] if index + 1 < len(modules) and type(modules[index + 1]) is nn.LayerNorm else None
+        following = modules[index + 1] if index + 1 < len(modules) else None
+        norm = following if type(following) is nn.LayerNorm else None
         position = index + (2 if norm is not None else 1)
         if position >= len(modules) or type(linear) is not nn.Linear:
             return None
