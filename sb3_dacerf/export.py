@@ -291,7 +291,7 @@ class _ScriptedDictPolicy(_ScriptedPolicy):
 class _ScriptedDiffusionPolicy(_ScriptedPolicy):
     """:class:`_ScriptedPolicy` of a DACER policy, whose optional second input is ``noise``."""
 
-    def forward(self, obs: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
+    def forward(self, obs: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
         if noise is None:
             return self.deterministic(obs)
         return self.stochastic(obs, noise)

@@ -324,7 +324,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
             super().save_replay_buffer(temporary)
 
     @classmethod
-    def load(cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+    def load(cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, **kwargs: Any) -> Any:
         """
         See :meth:`BaseAlgorithm.load`; a file saved by another algorithm (e.g. SAC) is refused with its name.
         """
