@@ -28,6 +28,7 @@ import argparse
 import csv
 import os
 import time
+from collections import Counter
 
 import gymnasium as gym
 import numpy as np
@@ -100,19 +101,18 @@ def markdown_table(rows: list[dict]) -> str:
     keys = sorted({(r["scenario"], r["density"], r["policy"]) for r in rows}, key=lambda k: (k[0], k[1], POLICIES.index(k[2])))
     for scenario, density, policy in keys:
         cell = [r for r in rows if (r["scenario"], r["density"], r["policy"]) == (scenario, density, policy)]
-        mean = lambda values: float(np.mean(values))  # noqa: E731
-        count = lambda outcome: sum(r["outcome"] == outcome for r in cell)  # noqa: E731
+        outcomes = Counter(r["outcome"] for r in cell)
         values = [
             scenario,
             density,
             policy,
             str(len(cell)),
-            f"{mean([r['length'] for r in cell]):.0f}",
-            str(count("arrived")),
-            str(count("collision")),
-            str(count("off_road")),
-            f"{mean([r['return'] for r in cell]):.0f}",
-            *(f"{mean([sum(r[t] for t in terms) for r in cell]):.0f}" for terms in GROUPS.values()),
+            f"{np.mean([r['length'] for r in cell]):.0f}",
+            str(outcomes["arrived"]),
+            str(outcomes["collision"]),
+            str(outcomes["off_road"]),
+            f"{np.mean([r['return'] for r in cell]):.0f}",
+            *(f"{np.mean([sum(r[t] for t in terms) for r in cell]):.0f}" for terms in GROUPS.values()),
         ]
         lines.append("| " + " | ".join(values) + " |")
     return "\n".join(lines)

@@ -154,7 +154,7 @@ def targets(results: dict[str, dict[tuple[str, str], float]]) -> str:
 def plot(results: dict[str, dict[tuple[str, str], float]], title: str, path: Path) -> None:
     figure, axes = plt.subplots(1, len(results), figsize=(5 * len(results), 4), sharey=True)
     width = 0.8 / len(ALGORITHMS)
-    for axis, (size, medians) in zip(np.atleast_1d(axes), results.items()):
+    for axis, (size, medians) in zip(np.atleast_1d(axes), results.items(), strict=True):
         for i, name in enumerate(ALGORITHMS):
             values = [1e3 * medians[(name, timing)] for timing in TIMINGS]
             axis.bar(np.arange(len(TIMINGS)) + (i - (len(ALGORITHMS) - 1) / 2) * width, values, width, label=name)

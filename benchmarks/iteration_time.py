@@ -122,7 +122,7 @@ def main() -> None:
 
     figure, axes = plt.subplots(1, len(batch_sizes), figsize=(6 * len(batch_sizes), 4), squeeze=False)
     width = 0.8 / len(names)
-    for axis, batch_size in zip(axes[0], batch_sizes):
+    for axis, batch_size in zip(axes[0], batch_sizes, strict=True):
         for i, name in enumerate(names):
             values = [1e3 * results[(size, batch_size)][name] for size in SIZES]
             axis.bar(np.arange(len(SIZES)) + (i - (len(names) - 1) / 2) * width, values, width, label=name)

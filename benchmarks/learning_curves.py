@@ -117,7 +117,8 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
     # VecNormalize pickles its statistics without the environments it wraps: both are kept
     normalize = env if isinstance(env, VecNormalize) else None
     with open(tmp / "env.pkl", "wb") as file:
-        cloudpickle.dump(dict(venv=env.venv if normalize else env, normalize=normalize, returns=getattr(normalize, "returns", None)), file)
+        venv = env.venv if normalize else env
+        cloudpickle.dump(dict(venv=venv, normalize=normalize, returns=getattr(normalize, "returns", None)), file)
     state = dict(
         pos=buffer.pos,
         full=buffer.full,
@@ -304,7 +305,7 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
     ]
     for variant, group in frame.groupby("variant", sort=False):
         curve = group.groupby("timesteps")
-        for axis, metric in zip(axes[0], metrics):
+        for axis, metric in zip(axes[0], metrics, strict=True):
             steps = np.array(sorted(curve.groups))
             values = [curve.get_group(step)[metric].to_numpy() for step in steps]
             intervals = np.array([bootstrap_interval(v, rng) for v in values])

@@ -41,7 +41,7 @@ import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths  # noqa: E402
+from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths
 
 
 class DrivingProgress(BaseCallback):
@@ -60,7 +60,7 @@ class DrivingProgress(BaseCallback):
         self.first_step, self.start = self.num_timesteps, time.perf_counter()
 
     def _on_step(self) -> bool:
-        for done, info in zip(self.locals["dones"], self.locals["infos"]):
+        for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
             if done and "episode" in info:
                 self.episodes.append(
                     (info["episode"]["r"], info["episode"]["l"], info["is_success"], info["collision"], info["off_road"])
@@ -80,7 +80,7 @@ class DrivingProgress(BaseCallback):
         return True
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", choices=["all", *SCENARIOS], help="scenario(s) to train on (default: all; with --load its own)")
     parser.add_argument("--algo", choices=["dacerf", "sac"], help="default: dacerf (with --load: the saved model's)")
@@ -109,31 +109,45 @@ def main(argv: list[str] | None = None) -> None:
         default=1,
         help="torch CPU threads (measured here on a loaded 2-core machine: 1 thread was 7-30x faster per update than 2)",
     )
+    return parser
+
+
+def resume_settings(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict[str, str]:
+    """
+    Check ``--load`` against the other options and fill in, from the saved model's ``.json``, the settings that were not
+    given (scenario, algorithm, density, config, observation normalisation).
+
+    :return: the saved model's paths (see ``model_paths``)
+    """
+    load_paths = model_paths(args.load)
+    if not os.path.isfile(load_paths["model"]):
+        parser.error(f"--load: no model file {load_paths['model']!r}; pass the NAME_<scenario>.zip written by --save")
+    metadata = {}
+    if os.path.isfile(load_paths["metadata"]):
+        with open(load_paths["metadata"]) as file:
+            metadata = json.load(file)
+    trained = {v: k for k, v in SCENARIOS.items()}.get(metadata.get("env_id"))
+    if args.env not in (None, trained) or (trained is None and args.env in (None, "all")):
+        parser.error(
+            f"--load: {args.load} was trained on {trained or 'an unknown scenario'}: "
+            f"pass --env {trained or 'multilane or --env intersection'}"
+        )
+    if args.algo and metadata.get("algo", args.algo) != args.algo:
+        parser.error(f"--load: {args.load} is a {metadata['algo']} model: pass --algo {metadata['algo']} or leave it out")
+    args.algo = args.algo or metadata.get("algo")
+    args.env = trained or args.env
+    args.density, args.config = metadata.get("density", args.density), {**metadata.get("config", {}), **args.config}
+    args.vec_normalize = args.vec_normalize or os.path.isfile(load_paths["vec_normalize"])
+    return load_paths
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.n_envs < 1:
         parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
     torch.set_num_threads(args.torch_threads)
-
-    load_paths, metadata = None, {}
-    if args.load:
-        load_paths = model_paths(args.load)
-        if not os.path.isfile(load_paths["model"]):
-            parser.error(f"--load: no model file {load_paths['model']!r}; pass the NAME_<scenario>.zip written by --save")
-        if os.path.isfile(load_paths["metadata"]):
-            with open(load_paths["metadata"]) as file:
-                metadata = json.load(file)
-        trained = {v: k for k, v in SCENARIOS.items()}.get(metadata.get("env_id"))
-        if args.env not in (None, trained) or (trained is None and args.env in (None, "all")):
-            parser.error(
-                f"--load: {args.load} was trained on {trained or 'an unknown scenario'}: "
-                f"pass --env {trained or 'multilane or --env intersection'}"
-            )
-        if args.algo and metadata.get("algo", args.algo) != args.algo:
-            parser.error(f"--load: {args.load} is a {metadata['algo']} model: pass --algo {metadata['algo']} or leave it out")
-        args.algo = args.algo or metadata.get("algo")
-        args.env = trained or args.env
-        args.density, args.config = metadata.get("density", args.density), {**metadata.get("config", {}), **args.config}
-        args.vec_normalize = args.vec_normalize or os.path.isfile(load_paths["vec_normalize"])
+    load_paths = resume_settings(parser, args) if args.load else None
 
     args.algo = args.algo or "dacerf"
     algo_class = load_algorithm(args.algo)

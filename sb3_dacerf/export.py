@@ -58,6 +58,10 @@ class ExportablePolicy(nn.Module, ABC):
     #: Name of the noise input of ONNX graphs (and of the second argument of TorchScript ones)
     noise_name: ClassVar[str]
 
+    # Buffers (registered in __init__)
+    action_center: th.Tensor
+    action_half_range: th.Tensor
+
     def __init__(self, actor: GenerativeActor, vec_normalize: VecNormalize | None = None):
         super().__init__()
         # A copy, so that exporting neither moves nor switches the mode of the model being trained
@@ -73,10 +77,9 @@ class ExportablePolicy(nn.Module, ABC):
         # buffers: VecNormalize normalises in float64 before SB3 casts to float32
         self.normalized_keys: list[str] = []
         if vec_normalize is not None and vec_normalize.norm_obs:
-            if self.obs_keys is None:
-                stats = {"obs": vec_normalize.obs_rms}
-            else:
-                stats = {key: vec_normalize.obs_rms[key] for key in vec_normalize.norm_obs_keys}
+            obs_rms = vec_normalize.obs_rms
+            # A dict of the normalised keys' statistics for Dict observations (check_vec_normalize checks the layout)
+            stats = dict(obs_rms) if isinstance(obs_rms, dict) else {"obs": obs_rms}
             for key, rms in stats.items():
                 self.register_buffer(f"obs_mean_{key}", th.as_tensor(rms.mean, dtype=th.float64))
                 self.register_buffer(f"obs_std_{key}", th.as_tensor(np.sqrt(rms.var + vec_normalize.epsilon), dtype=th.float64))
@@ -130,6 +133,13 @@ class ExportableFlowPolicy(ExportablePolicy):
 
     noise_name = "a0"
 
+    actor: FlowActor
+    # Buffers (registered in __init__)
+    state_weight: th.Tensor
+    action_weight: th.Tensor
+    time_weight: th.Tensor
+    first_bias: th.Tensor
+
     def __init__(self, actor: FlowActor, n_sampling_steps: int | None = None, vec_normalize: VecNormalize | None = None):
         super().__init__(actor, vec_normalize)
         self.n_sampling_steps = actor.n_sampling_steps if n_sampling_steps is None else n_sampling_steps
@@ -137,12 +147,12 @@ class ExportableFlowPolicy(ExportablePolicy):
             raise ValueError(f"n_sampling_steps must be an integer >= 1, got {self.n_sampling_steps!r}")
         step = 1.0 / self.n_sampling_steps
         # Euler steps a <- a + v / N: the last layer is scaled by 1 / N so that the network outputs the step itself
-        last_layer = self.actor.network[-1]
+        last_layer = _linear(self.actor.network[-1])
         last_layer.weight.mul_(step)
         last_layer.bias.mul_(step)
         # The first layer, split by input ([features, actions, time]): the state term is one Gemm, the time term a
         # constant, and a (1, action_dim) a0 broadcasts over the batch; without a0 (= 0) the action term is left out
-        first_layer = self.actor.network[0]
+        first_layer = _linear(self.actor.network[0])
         state_weight, action_weight, time_weight = first_layer.weight.split(
             [self.actor.features_dim, self.actor.action_dim, 1], 1
         )
@@ -177,10 +187,16 @@ class ExportableDiffusionPolicy(ExportablePolicy):
 
     noise_name = "noise"
 
+    actor: DiffusionActor
+    # Buffers (registered in __init__)
+    state_weight: th.Tensor
+    action_weight: th.Tensor
+    time_terms: th.Tensor
+
     def __init__(self, actor: DiffusionActor, vec_normalize: VecNormalize | None = None):
         super().__init__(actor, vec_normalize)
         self.reverse_coefficients = list(self.actor.reverse_coefficients)
-        first_layer = self.actor.network[0]
+        first_layer = _linear(self.actor.network[0])
         state_weight, action_weight, time_weight = first_layer.weight.split(
             [self.actor.features_dim, self.actor.action_dim, self.actor.time_embedding_dim], 1
         )
@@ -211,6 +227,13 @@ class ExportableDiffusionPolicy(ExportablePolicy):
                 actions = actions + std * noise[:, t]
         assert actions is not None  # n_diffusion_steps >= 1
         return actions
+
+
+def _linear(layer: nn.Module) -> nn.Linear:
+    """``layer``, the first or last layer of an actor's network, as the ``nn.Linear`` the graph splits or scales."""
+    if not isinstance(layer, nn.Linear):
+        raise TypeError(f"The actor's network must start and end with nn.Linear layers, got a {type(layer).__name__}")
+    return layer
 
 
 def exportable_policy(
@@ -268,7 +291,7 @@ class _ScriptedDictPolicy(_ScriptedPolicy):
 class _ScriptedDiffusionPolicy(_ScriptedPolicy):
     """:class:`_ScriptedPolicy` of a DACER policy, whose optional second input is ``noise``."""
 
-    def forward(self, obs: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
+    def forward(self, obs: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
         if noise is None:
             return self.deterministic(obs)
         return self.stochastic(obs, noise)
@@ -290,6 +313,12 @@ _SCRIPTED_POLICIES = {
     (False, "noise"): _ScriptedDiffusionPolicy,
     (True, "noise"): _ScriptedDiffusionDictPolicy,
 }
+
+
+def _mean_shape(obs_rms: object) -> tuple[int, ...]:
+    """Shape of the mean of VecNormalize statistics, ``()`` when they have none."""
+    mean = getattr(obs_rms, "mean", None)
+    return () if mean is None else np.shape(mean)
 
 
 def check_vec_normalize(vec_normalize: object, observation_space: spaces.Space) -> None:
@@ -315,7 +344,7 @@ def check_vec_normalize(vec_normalize: object, observation_space: spaces.Space) 
         if not isinstance(obs_rms, dict):
             raise ValueError(
                 f"The VecNormalize statistics normalise one observation array of shape "
-                f"{np.shape(getattr(obs_rms, 'mean', None))} but the model takes Dict observations with keys "
+                f"{_mean_shape(obs_rms)} but the model takes Dict observations with keys "
                 f"{list(observation_space.spaces)}. {advice}"
             )
         for key, rms in obs_rms.items():
@@ -335,9 +364,9 @@ def check_vec_normalize(vec_normalize: object, observation_space: spaces.Space) 
             f"The VecNormalize statistics are for Dict observations (keys {list(obs_rms)}) but the model takes one "
             f"observation array of shape {observation_space.shape}. {advice}"
         )
-    if np.shape(getattr(obs_rms, "mean", None)) != observation_space.shape:
+    if _mean_shape(obs_rms) != observation_space.shape:
         raise ValueError(
-            f"The VecNormalize statistics normalise observations of shape {np.shape(getattr(obs_rms, 'mean', None))} "
+            f"The VecNormalize statistics normalise observations of shape {_mean_shape(obs_rms)} "
             f"but the model's observations have shape {observation_space.shape}. {advice}"
         )
 
@@ -436,7 +465,7 @@ def export_policy(
     return path
 
 
-def load_model(path: Path) -> BaseAlgorithm:
+def load_model(path: Path) -> DACERF | DACER:
     """
     Load a DACERF or DACER model on the CPU, the algorithm read from the file.
 

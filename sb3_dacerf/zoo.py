@@ -28,12 +28,15 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import optuna
 import yaml
 
 from sb3_dacerf import DACER, DACERF
+
+if TYPE_CHECKING:
+    from rl_zoo3.exp_manager import ExperimentManager
 
 # Wheels ship the YAML files inside the package; source checkouts and editable installs keep them at the repository root
 HYPERPARAMS_DIR = Path(__file__).parent / "hyperparams"
@@ -88,7 +91,7 @@ def sample_dacerf_params(
     :param policy_kwargs: ``policy_kwargs`` of the YAML entry, kept apart from the sampled ``net_arch``
     :return: keyword arguments for ``DACERF``
     """
-    sampled = {
+    sampled: dict[str, Any] = {
         "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),
         # From 2**7=128 to 2**10=1024 (paper: 512)
         "batch_size_pow": trial.suggest_int("batch_size_pow", 7, 10),
@@ -141,7 +144,7 @@ def sample_dacer_params(
     :param policy_kwargs: ``policy_kwargs`` of the YAML entry, kept apart from the sampled ``net_arch``
     :return: keyword arguments for ``DACER``
     """
-    sampled = {
+    sampled: dict[str, Any] = {
         "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),
         # From 2**7=128 to 2**10=1024 (DACER paper: 256)
         "batch_size_pow": trial.suggest_int("batch_size_pow", 7, 10),
@@ -243,8 +246,11 @@ def database_studies(interval: int) -> Iterator[None]:
         optuna.create_study = create_study
 
 
-def _patch_experiment_manager(cls: type) -> None:
-    if getattr(cls, "_sb3_dacerf_patched", False):
+_PATCHED_MARK = "_sb3_dacerf_patched"
+
+
+def _patch_experiment_manager(cls: "type[ExperimentManager]") -> None:
+    if getattr(cls, _PATCHED_MARK, False):
         return
     init = cls.__init__
     init_signature = inspect.signature(init)
@@ -271,9 +277,10 @@ def _patch_experiment_manager(cls: type) -> None:
         with database_studies(heartbeat_interval()):
             optimize(self)
 
-    cls.__init__ = __init__
-    cls.hyperparameters_optimization = hyperparameters_optimization
-    cls._sb3_dacerf_patched = True
+    # Patching RL Zoo's class is what this function is for
+    cls.__init__ = __init__  # type: ignore[method-assign]
+    cls.hyperparameters_optimization = hyperparameters_optimization  # type: ignore[method-assign]
+    setattr(cls, _PATCHED_MARK, True)
 
 
 def register(module: ModuleType) -> None:

@@ -179,8 +179,8 @@ def test_same_seed_same_training(model_class, fast):
         return [p.detach().clone() for p in model.policy.parameters()]
 
     first, second, other = train(3), train(3), train(4)
-    assert all(th.equal(a, b) for a, b in zip(first, second))
-    assert not all(th.equal(a, b) for a, b in zip(first, other))
+    assert all(th.equal(a, b) for a, b in zip(first, second, strict=True))
+    assert not all(th.equal(a, b) for a, b in zip(first, other, strict=True))
 
 
 def test_discrete_actions_are_refused_with_advice(model_class):

@@ -53,11 +53,11 @@ def test_actor_and_targets_update_every_policy_delay_updates(fast):
     actor_before = [p.clone() for p in model.actor.parameters()]
     target_before = [p.clone() for p in model.critic_target.parameters()]
     model.train(gradient_steps=1, batch_size=32)  # update 11: critic only
-    assert all(th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters()))
-    assert all(th.equal(a, b) for a, b in zip(target_before, model.critic_target.parameters()))
+    assert all(th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters(), strict=True))
+    assert all(th.equal(a, b) for a, b in zip(target_before, model.critic_target.parameters(), strict=True))
     model.train(gradient_steps=1, batch_size=32)  # update 12: actor, through all the denoising steps, and targets
-    assert all(not th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters()))
-    assert not all(th.equal(a, b) for a, b in zip(target_before, model.critic_target.parameters()))
+    assert all(not th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters(), strict=True))
+    assert not all(th.equal(a, b) for a, b in zip(target_before, model.critic_target.parameters(), strict=True))
 
 
 @pytest.mark.parametrize("target_entropy, direction", [(-100.0, -1), (100.0, 1)])

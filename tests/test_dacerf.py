@@ -54,8 +54,8 @@ def test_policy_delay_updates_the_actor_every_third_critic_update(fast):
     model.train(gradient_steps=2, batch_size=32)  # updates 11 and 12: only 12 is an actor update
     model._n_updates = 13
     model.train(gradient_steps=1, batch_size=32)  # update 14: critic only
-    assert not all(th.equal(a, b) for a, b in zip(critic_before, model.critic.parameters()))
-    changed = [not th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters())]
+    assert not all(th.equal(a, b) for a, b in zip(critic_before, model.critic.parameters(), strict=True))
+    changed = [not th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters(), strict=True)]
     assert all(changed)
     actor_after = [p.clone() for p in model.actor.parameters()]
     model.train(gradient_steps=1, batch_size=32)  # update 15: actor update
@@ -225,10 +225,10 @@ def test_non_finite_rewards_stop_training_with_the_cause_and_keep_the_model(fast
     model = DACERF("MlpPolicy", NanRewardPendulum(gym.make("Pendulum-v1")), seed=0, **fast)
     parameters = [p.clone() for p in model.policy.parameters()]
     # a ValueError too, so that RL Zoo's -optimize prunes the trial instead of stopping the study
-    with pytest.raises(ValueError, match="non-finite critic loss.*non-finite rewards.*VecCheckNan") as error:
+    with pytest.raises(ValueError, match=r"non-finite critic loss.*non-finite rewards.*VecCheckNan") as error:
         model.learn(100)
     assert isinstance(error.value, RuntimeError)
-    assert all(th.equal(a, b) for a, b in zip(parameters, model.policy.parameters()))
+    assert all(th.equal(a, b) for a, b in zip(parameters, model.policy.parameters(), strict=True))
     model.predict(model.observation_space.sample(), deterministic=True)
 
 

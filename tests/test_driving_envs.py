@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("highway_env")
 
-import sb3_dacerf  # noqa: E402, F401  (registers the ids)
-from sb3_dacerf.envs.driving.common import (  # noqa: E402
+import sb3_dacerf  # noqa: F401  (registers the ids)
+from sb3_dacerf.envs.driving.common import (
     EGO_FEATURES,
     REWARD_TERMS,
     VEHICLE_FEATURES,
@@ -90,7 +90,7 @@ def test_spaces_and_bounds(env_id):
 
 
 def test_increments_integrate_to_paper_bounds():
-    env, unwrapped, ego, lane = empty_highway(duration=20)
+    env, unwrapped, ego, _lane = empty_highway(duration=20)
     ego.speed = 0.0  # standing still, so that full steering does not leave the road
     for action, steps, expected in (((1.0, 0.0), 3, (0.75, 0.0)), ((1.0, 0.0), 1, (0.8, 0.0)), ((-1.0, 1.0), 4, (-0.8, 0.1))):
         for _ in range(steps):
@@ -103,7 +103,7 @@ def test_increments_integrate_to_paper_bounds():
 
 
 def test_observation_layout():
-    env, unwrapped, ego, lane = empty_highway()
+    _env, unwrapped, ego, lane = empty_highway()
     ego_s = lane.local_coordinates(ego.position)[0]
     ahead = add_vehicle(unwrapped, ego.lane_index, ego_s + 20.0, speed=18.0)
     side_lane = (ego.lane_index[0], ego.lane_index[1], 1 - min(ego.lane_index[2], 1))  # an adjacent lane
@@ -173,14 +173,14 @@ DYNAMIC_PENALTY_AT_FIRST_STEP = 200.0 + 21.0 * 29
 def test_collision_ends_episode_with_penalty(penalty, expected):
     env, unwrapped, ego, lane = empty_highway(**({} if penalty is None else {"collision_penalty": penalty}))
     add_vehicle(unwrapped, ego.lane_index, lane.local_coordinates(ego.position)[0] + 3.0, speed=5.0)
-    _, reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
+    _, reward, terminated, _truncated, info = env.step(np.zeros(2, dtype=np.float32))
     assert terminated and info["collision"] and not info["is_success"]
     assert info["reward_terms"]["collision"] == pytest.approx(-expected) and reward <= -expected
 
 
 @pytest.mark.parametrize("penalty, expected", [(None, DYNAMIC_PENALTY_AT_FIRST_STEP), (200.0, 200.0)])
 def test_leaving_the_road_ends_episode_with_penalty(penalty, expected):
-    env, unwrapped, ego, lane = empty_highway(**({} if penalty is None else {"collision_penalty": penalty}))
+    env, _unwrapped, ego, _lane = empty_highway(**({} if penalty is None else {"collision_penalty": penalty}))
     ego.position = np.array([ego.position[0], -2.5])  # beyond the left edge of lane 0 (centre y = 0, 4 m wide)
     _, reward, terminated, _, info = env.step(np.zeros(2, dtype=np.float32))
     assert terminated and info["off_road"] and not info["is_success"]
@@ -204,7 +204,7 @@ def test_dynamic_severe_penalty():
 
 
 def test_highway_success_at_time_limit():
-    env, unwrapped, ego, lane = empty_highway(duration=1)
+    env, *_ = empty_highway(duration=1)
     for _ in range(10):
         _, _, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
     assert truncated and not terminated and info["is_success"]
@@ -290,9 +290,9 @@ def test_seeded_resets_are_identical(env_id):
 def test_bad_kwargs_raise_clear_errors():
     with pytest.raises(ValueError, match="'sparse', 'normal', 'dense'"):
         gym.make("DACERF-Multilane-v0", density="heavy")
-    with pytest.raises(ValueError, match="Unknown config key.*'lane_count'"):
+    with pytest.raises(ValueError, match=r"Unknown config key.*'lane_count'"):
         gym.make("DACERF-Multilane-v0", config={"lane_count": 4})
-    with pytest.raises(ValueError, match="Unknown config key.*'observation'"):  # replaced by ours, not a silent no-op
+    with pytest.raises(ValueError, match=r"Unknown config key.*'observation'"):  # replaced by ours, not a silent no-op
         gym.make("DACERF-Intersection-v0", config={"observation": {"type": "Kinematics"}})
     with pytest.raises(TypeError, match="densty"):
         gym.make("DACERF-Multilane-v0", densty="dense")
@@ -352,7 +352,7 @@ def test_bad_actions_raise_clear_errors(env_id):
     env = make(env_id)
     env.reset(seed=0)
     for action in ([np.nan, 0.0], [0.0, np.nan], [np.inf, 0.0]):
-        with pytest.raises(ValueError, match="NaN or infinite.*check its inputs"):
+        with pytest.raises(ValueError, match=r"NaN or infinite.*check its inputs"):
             env.step(np.array(action, dtype=np.float32))
     for action in (np.zeros(3), np.zeros((1, 2)), np.float32(0.1), np.zeros((2, 2))):
         with pytest.raises(ValueError, match=r"must have shape \(2,\)"):
@@ -369,7 +369,7 @@ def test_step_before_reset_and_after_the_end():
 
     from sb3_dacerf.envs.driving.multilane import MultilaneEnv
 
-    with pytest.raises(ResetNeeded, match="before calling env.reset"):  # gym.make's OrderEnforcing
+    with pytest.raises(ResetNeeded, match=r"before calling env.reset"):  # gym.make's OrderEnforcing
         make("DACERF-Multilane-v0").step(np.zeros(2, dtype=np.float32))
     env = MultilaneEnv(config={"duration": 0.2})
     env.reset(seed=0)
@@ -382,6 +382,17 @@ def test_step_before_reset_and_after_the_end():
         env.step(np.zeros(2, dtype=np.float32))
         env.reset(seed=1)
         env.step(np.zeros(2, dtype=np.float32))
+
+
+def test_scripted_driver_takes_only_the_driving_envs():
+    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+    with pytest.raises(TypeError, match=r"ScriptedDriver drives DACERF-Multilane-v0.*got PendulumEnv"):
+        ScriptedDriver(gym.make("Pendulum-v1"))
+    env = make("DACERF-Intersection-v0")
+    obs, _ = env.reset(seed=0)
+    action = ScriptedDriver(env)(obs)
+    assert action.shape == (2,) and np.all(action >= env.action_space.low) and np.all(action <= env.action_space.high)
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
@@ -401,7 +412,7 @@ def test_scene_is_perceived_once_per_step_and_observe_has_no_side_effect(monkeyp
     unwrapped = env.unwrapped
     calls = []
     monkeypatch.setattr(abstract, "observe_scene", lambda e: calls.append(1) or observe_scene(e))
-    obs, reward, *_, info = env.step(np.zeros(2, dtype=np.float32))
+    obs, reward, *_, _info = env.step(np.zeros(2, dtype=np.float32))
     assert len(calls) == 1
     scene = unwrapped.scene
     # observe() of the current state gives the step's observation and leaves the step's scene in place
@@ -517,7 +528,7 @@ def test_pinned_episodes_are_unchanged():
     with open(PINNED_EPISODES_PATH) as file:
         pinned = json.load(file)
     assert len(pinned) == len(PINNED_EPISODES)
-    for spec, expected in zip(PINNED_EPISODES, pinned):
+    for spec, expected in zip(PINNED_EPISODES, pinned, strict=True):
         assert expected["spec"] == json.loads(json.dumps(list(spec))), "pinned episode list changed: regenerate the file"
         actual = record_episode(*spec)
         assert actual["flags"] == expected["record"]["flags"], spec

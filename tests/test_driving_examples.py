@@ -74,11 +74,11 @@ def test_evaluate_prints_the_paper_metrics(trained, capsys):
 
 def test_evaluate_errors_name_the_problem(trained, tmp_path):
     evaluate = load_example("evaluate_driving")
-    with pytest.raises(SystemExit, match="no model file.*train_driving.py --save"):
+    with pytest.raises(SystemExit, match=r"no model file.*train_driving.py --save"):
         evaluate.main([str(tmp_path / "missing.zip")])
-    with pytest.raises(SystemExit, match="trained on DACERF-Multilane-v0.*--force"):
+    with pytest.raises(SystemExit, match=r"trained on DACERF-Multilane-v0.*--force"):
         evaluate.main([trained, "--env", "intersection"])
-    with pytest.raises(SystemExit, match="cannot load.*check --algo"):
+    with pytest.raises(SystemExit, match=r"cannot load.*check --algo"):
         evaluate.main([trained, "--algo", "dacerf"])
     with pytest.raises(SystemExit, match=r"observation_space has shape \(93,\).*\(87,\)"):
         evaluate.main([trained, "--config", '{"surrounding_vehicles": 7}'])

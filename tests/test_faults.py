@@ -136,7 +136,7 @@ def test_non_finite_loss_error_is_a_value_error_for_rl_zoo_pruning():
 
 def test_unsupported_action_space_is_an_assertion_error_like_sb3(model_class, fast):
     for expected in (AssertionError, TypeError):
-        with pytest.raises(expected, match="needs a continuous action space.*Discrete\\(2\\).*DQN"):
+        with pytest.raises(expected, match=r"needs a continuous action space.*Discrete\(2\).*DQN"):
             model_class("MlpPolicy", "CartPole-v1", **fast)
     assert issubclass(UnsupportedActionSpaceError, AssertionError) and issubclass(UnsupportedActionSpaceError, TypeError)
 

@@ -1,6 +1,7 @@
 """The flow actor as a conditional generative model, trained by flow matching alone."""
 
 import copy
+import functools
 
 import numpy as np
 import pytest
@@ -32,7 +33,7 @@ def fit_two_modes(field: FlowActor, n_updates: int = 1500) -> None:
         features = nn.functional.one_hot(states, 2).float()
         sign = th.randint(0, 2, (256, 1)).float() * 2 - 1
         targets = th.where(states[:, None] == 0, 0.6 * sign, 0.5 + 0.2 * sign)
-        loss = flow_matching_loss(lambda actions_t, time: field.velocity(features, actions_t, time), targets).mean()
+        loss = flow_matching_loss(functools.partial(field.velocity, features), targets).mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()

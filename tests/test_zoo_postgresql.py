@@ -137,10 +137,12 @@ def test_killed_worker_trial_is_failed_and_the_study_completes(tmp_path, postgre
         wait_for(lambda: started_trials("worker_a") and started_trials("worker_b"), 180, "both workers to train a trial")
         (killed_trial,) = started_trials("worker_a")
         assert optuna.load_study(study_name=study_name, storage=postgresql_url).trials[killed_trial].state == states.RUNNING
-    except BaseException:
+    except BaseException as error:
         for process in (worker_a, worker_b):
             os.killpg(process.pid, signal.SIGKILL)
-        raise AssertionError(f"worker A:\n{worker_a.communicate()[0][-3000:]}\nworker B:\n{worker_b.communicate()[0][-3000:]}")
+        raise AssertionError(
+            f"worker A:\n{worker_a.communicate()[0][-3000:]}\nworker B:\n{worker_b.communicate()[0][-3000:]}"
+        ) from error
     os.killpg(worker_a.pid, signal.SIGKILL)  # no clean-up: as a node lost with its machine
     worker_a.communicate()
 

@@ -111,12 +111,13 @@ class MinQActionGradient:
             self.features = critic.extract_features(observations, critic.features_extractor)
         self.q_networks = list(critic.q_networks)
         layers = [_hidden_blocks(q_net) for q_net in self.q_networks]
-        self.written_out = all(layer is not None for layer in layers)
+        written_out = [layer for layer in layers if layer is not None]
+        self.written_out = len(written_out) == len(layers)
         if self.written_out:
             n_features = self.features.shape[1]
             self.networks = []
             with th.no_grad():
-                for blocks, output in layers:  # type: ignore[misc]
+                for blocks, output in written_out:
                     first = blocks[0][0]
                     # W [s; a] + b = (W_s s + b) + W_a a: the state part is the same at every Langevin step
                     state_part = self.features @ first.weight[:, :n_features].t()
@@ -148,8 +149,8 @@ class MinQActionGradient:
                     linear, norm, activation = blocks[index]
                     z, norm_cache = saved[index]
                     gradient = _ACTIVATION_BACKWARDS[type(activation)](activation, gradient, z)
-                    if norm is not None:
-                        gradient = _layer_norm_backward(norm, gradient, norm_cache)  # type: ignore[arg-type]
+                    if norm is not None and norm_cache is not None:  # both or neither
+                        gradient = _layer_norm_backward(norm, gradient, norm_cache)
                     gradient = gradient @ (action_weight if index == 0 else linear.weight)
                 gradients.append(gradient)
             # The gradient of the smallest Q, per sample (the first one on ties, as autograd through th.min)
@@ -172,11 +173,12 @@ def _hidden_blocks(network: nn.Module) -> tuple[list[tuple[nn.Linear, nn.LayerNo
     if not isinstance(network, nn.Sequential):
         return None
     modules = list(network)
-    blocks = []
+    blocks: list[tuple[nn.Linear, nn.LayerNorm | None, nn.Module]] = []
     index = 0
     while index < len(modules) - 1:
         linear = modules[index]
-        norm = modules[index + 1] if index + 1 < len(modules) and type(modules[index + 1]) is nn.LayerNorm else None
+        following = modules[index + 1] if index + 1 < len(modules) else None
+        norm = following if type(following) is nn.LayerNorm else None
         position = index + (2 if norm is not None else 1)
         if position >= len(modules) or type(linear) is not nn.Linear:
             return None

@@ -368,7 +368,9 @@ class LayerNormCritic(ContinuousCritic):
             share_features_extractor=share_features_extractor,
         )
         input_dim = features_dim + get_action_dim(action_space)
-        self.q_networks = nn.ModuleList()
+        # SB3 annotates q_networks as list[nn.Module] but only iterates and indexes it, as a ModuleList allows; the
+        # ModuleList's parameter names (q_networks.<i>.*) are in saved models, so it stays
+        self.q_networks = nn.ModuleList()  # type: ignore[assignment]
         for idx in range(n_critics):
             q_net = nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, post_linear_modules=[nn.LayerNorm]))
             self.add_module(f"qf{idx}", q_net)

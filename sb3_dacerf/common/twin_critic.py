@@ -25,7 +25,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorch
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 from torch.nn import functional as F
 
-from sb3_dacerf.common.policies import GenerativeActor
+from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
 from sb3_dacerf.common.utils import atomic_path, non_finite_entries, save_path_with_suffix
 
 SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAlgorithm")
@@ -70,7 +70,7 @@ class HyperparameterRule:
 def integer_at_least(minimum: int, valid_range: str | None = None) -> HyperparameterRule:
     """The rule of a count: an integer ``>= minimum`` (``valid_range`` describes it, ``"an integer >= minimum"`` by default)."""
     return HyperparameterRule(
-        lambda value: isinstance(value, (int, np.integer)) and value >= minimum,
+        lambda value: isinstance(value, (int, np.integer)) and bool(value >= minimum),
         f"an integer >= {minimum}" if valid_range is None else valid_range,
     )
 
@@ -107,7 +107,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         "gamma": HyperparameterRule(lambda value: 0 <= value <= 1, "in [0, 1]"),
     }
 
-    policy: BasePolicy
+    policy: TwinCriticPolicy
     actor: GenerativeActor
     critic: ContinuousCritic
     critic_target: ContinuousCritic
@@ -125,7 +125,8 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
             check_action_space(env.action_space, algorithm=type(self).__name__)
         # The action space is checked above, with an error that says what to do instead
         kwargs.update(supported_action_spaces=None, support_multi_env=True, sde_support=False)
-        super().__init__(policy, env, learning_rate, **kwargs)
+        # SB3 annotates OffPolicyAlgorithm's env without None, which its own load() passes
+        super().__init__(policy, env, learning_rate, **kwargs)  # type: ignore[arg-type]
 
     def _setup_model(self) -> None:
         # Before anything is built: a wrong value fails here, with its valid range
@@ -237,10 +238,14 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         )
         if self.logger.name_to_value:
             # Written, then kept readable in logger.name_to_value as after SB3's learn() (dump() would clear them)
-            tables = (self.logger.name_to_value, self.logger.name_to_count, self.logger.name_to_excluded)
+            tables: tuple[dict[str, Any], ...] = (
+                self.logger.name_to_value,
+                self.logger.name_to_count,
+                self.logger.name_to_excluded,
+            )
             logged = [dict(table) for table in tables]
             self.dump_logs()
-            for table, values in zip(tables, logged):
+            for table, values in zip(tables, logged, strict=True):
                 table.update(values)
         if self._n_updates == n_updates and self.num_timesteps > self._num_timesteps_at_start:
             name = type(self).__name__
@@ -319,7 +324,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
             super().save_replay_buffer(temporary)
 
     @classmethod
-    def load(cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, **kwargs: Any) -> Any:  # type: ignore[override]
+    def load(cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, **kwargs: Any) -> Any:
         """
         See :meth:`BaseAlgorithm.load`; a file saved by another algorithm (e.g. SAC) is refused with its name.
         """

@@ -5,6 +5,7 @@ import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 
 from sb3_dacerf.common.twin_critic import (
@@ -169,7 +170,7 @@ class DACER(TwinCriticAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        self.target_entropy = resolve_target_entropy(self.target_entropy, -0.9 * float(np.prod(self.action_space.shape)))  # type: ignore[arg-type]
+        self.target_entropy = resolve_target_entropy(self.target_entropy, -0.9 * float(get_action_dim(self.action_space)))
         # log α lives in the actor (it sets the exploration noise of predict()); only this optimizer changes it
         self.actor.log_alpha.fill_(self.initial_log_alpha)
         self.alpha_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.alpha_learning_rate)
@@ -178,13 +179,14 @@ class DACER(TwinCriticAlgorithm):
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+        assert self.replay_buffer is not None, "train() needs the replay buffer that _setup_model() creates"
 
         critic_losses, actor_losses = [], []
 
         for _ in range(gradient_steps):
             self._n_updates += 1
             # Replay: a batch (s, a, r, s', done), actions in [-1, 1]
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
 
             # Critic update, J_Q: y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s') by reverse diffusion
             critic_losses.append(self._update_critic(replay_data))
@@ -208,7 +210,7 @@ class DACER(TwinCriticAlgorithm):
             if (self._n_updates - 1) % self.alpha_update_interval == 0:
                 self.entropy = self._estimate_entropy(replay_data.observations)
                 # ∂J(α)/∂log α = H - H_target: the noise shrinks while the policy is more random than the target
-                self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, self.entropy - self.target_entropy)
+                self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, self.entropy - float(self.target_entropy))
                 self.alpha_optimizer.step()
 
         self.logger.record("train/n_updates", self._n_updates)

@@ -3,7 +3,9 @@ from typing import Any
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN, create_mlp
+from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
 from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
@@ -174,7 +176,10 @@ class DACERPolicy(TwinCriticPolicy):
 
     def __init__(
         self,
-        *args: Any,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        *,
         net_arch: list[int] | dict[str, list[int]] | None = None,
         activation_fn: type[nn.Module] = nn.Mish,
         n_diffusion_steps: int = 20,
@@ -183,7 +188,9 @@ class DACERPolicy(TwinCriticPolicy):
         **kwargs: Any,
     ):
         super().__init__(
-            *args,
+            observation_space,
+            action_space,
+            lr_schedule,
             net_arch=[256, 256, 256] if net_arch is None else net_arch,
             activation_fn=activation_fn,
             actor_kwargs=dict(

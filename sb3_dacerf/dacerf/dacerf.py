@@ -7,6 +7,7 @@ import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
@@ -212,7 +213,7 @@ class DACERF(TwinCriticAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        self.target_entropy = resolve_target_entropy(self.target_entropy, -float(np.prod(self.action_space.shape)))  # type: ignore[arg-type]
+        self.target_entropy = resolve_target_entropy(self.target_entropy, -float(get_action_dim(self.action_space)))
         initial_ent_coef = self._initial_ent_coef()
         self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
         if self._learns_ent_coef():
@@ -252,6 +253,7 @@ class DACERF(TwinCriticAlgorithm):
         if self.ent_coef_optimizer is not None:
             optimizers.append(self.ent_coef_optimizer)
         self._update_learning_rate(optimizers)
+        assert self.replay_buffer is not None, "train() needs the replay buffer that _setup_model() creates"
 
         critic_losses: list[float] = []
         actor_logs: dict[str, list[float]] = {}
@@ -260,7 +262,7 @@ class DACERF(TwinCriticAlgorithm):
         for _ in range(gradient_steps):
             self._n_updates += 1
             # Replay: sample a batch (s, a_B, r, s', done) from the buffer B, actions a_B in [-1, 1]
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
 
             # Critic update: minimise J_Q(φ_i), target y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s')
             critic_losses.append(self._update_critic(replay_data))
@@ -356,7 +358,7 @@ class DACERF(TwinCriticAlgorithm):
         # Entropy regulator: estimate H of the noisy policy, then step log α on J(α) = log α (H - H_target)
         entropy, spread = self._entropy_and_spread(terms["features"])
         if self.ent_coef_optimizer is not None:
-            ent_coef_gradient = entropy - self.target_entropy  # type: ignore[operator]
+            ent_coef_gradient = entropy - float(self.target_entropy)  # a float since _setup_model()
             self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, ent_coef_gradient)
             self.ent_coef_optimizer.step()
             logs["ent_coef_loss"] = self.actor.log_alpha.item() * ent_coef_gradient

@@ -1,12 +1,14 @@
 from typing import Any
 
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     CombinedExtractor,
     NatureCNN,
     create_mlp,
 )
+from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
 from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
@@ -92,8 +94,17 @@ class DACERFPolicy(TwinCriticPolicy):
     actor_class = FlowActor
     actor: FlowActor
 
-    def __init__(self, *args: Any, n_sampling_steps: int = 1, **kwargs: Any):
-        super().__init__(*args, actor_kwargs=dict(n_sampling_steps=n_sampling_steps), **kwargs)
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        *,
+        n_sampling_steps: int = 1,
+        **kwargs: Any,
+    ):
+        actor_kwargs = dict(n_sampling_steps=n_sampling_steps)
+        super().__init__(observation_space, action_space, lr_schedule, actor_kwargs=actor_kwargs, **kwargs)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()

@@ -84,7 +84,7 @@ def _no_gl_error(what: str) -> RuntimeError:
     )
 
 
-class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, Any, np.ndarray]):
+class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarray]):
     """
     A ``dm_control.suite`` task through shimmy, with the observation dict flattened to one ``float32``
     vector (in the task's observation order) and the action box mapped to ``[-1, 1]``.
@@ -101,7 +101,7 @@ class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, Any, np.ndarray]):
     :param environment_kwargs: passed to ``dm_control.suite.load``
     """
 
-    metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "render_fps": 50}
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012  (gymnasium.Env declares it without ClassVar)
 
     def __init__(
         self,
@@ -140,11 +140,12 @@ class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, Any, np.ndarray]):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         obs, info = self.env.reset(seed=seed, options=options)
-        return self._flatten(obs), info
+        # gymnasium types Wrapper.env with the wrapper's observation type, not the wrapped env's (a dict here)
+        return self._flatten(obs), info  # type: ignore[arg-type]
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
         obs, reward, terminated, truncated, info = self.env.step(self._action_low + (action + 1.0) * self._action_scale)
-        return self._flatten(obs), float(reward), terminated, truncated, info
+        return self._flatten(obs), float(reward), terminated, truncated, info  # type: ignore[arg-type]  # as in reset
 
     def render(self) -> Any:
         try:

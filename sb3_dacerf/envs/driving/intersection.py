@@ -22,12 +22,14 @@ after ``duration`` (40 s). Observation scaling: positions / 25 m, speeds / 10 m/
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 from highway_env.envs.intersection_env import IntersectionEnv as HighwayIntersectionEnv
 from highway_env.road.lane import AbstractLane
 
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
-from sb3_dacerf.envs.driving.common.config import interval, number
+from sb3_dacerf.envs.driving.common.config import Rule, interval, number
 
 ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
 """Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
@@ -92,12 +94,12 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
     """
 
-    DENSITY_CONFIGS = {
+    DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
         "sparse": {"initial_vehicle_count": 5, "spawn_probability": 0.03},
         "normal": {"initial_vehicle_count": 10, "spawn_probability": 0.06},
         "dense": {"initial_vehicle_count": 15, "spawn_probability": 0.12},
     }
-    CONFIG_RULES = {
+    CONFIG_RULES: ClassVar[dict[str, Rule]] = {
         "initial_vehicle_count": number(0, integer=True),
         "spawn_probability": number(0.0, 1.0),
         "routes": _routes_rule,

@@ -17,6 +17,8 @@ safely. Observation scaling: positions / 50 m, speeds / 30 m/s (see ``sb3_dacerf
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 from highway_env import utils
 from highway_env.envs.highway_env import HighwayEnv
@@ -25,7 +27,7 @@ from highway_env.road.road import LaneIndex
 from highway_env.vehicle.kinematics import Vehicle
 
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
-from sb3_dacerf.envs.driving.common.config import choice, interval, number
+from sb3_dacerf.envs.driving.common.config import Rule, choice, interval, number
 
 REFERENCE_LANES = ("random", "current", "left", "right")
 
@@ -39,12 +41,12 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
     :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
     """
 
-    DENSITY_CONFIGS = {
+    DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
         "sparse": {"vehicles_count": 6},
         "normal": {"vehicles_count": 12},
         "dense": {"vehicles_count": 20},
     }
-    CONFIG_RULES = {
+    CONFIG_RULES: ClassVar[dict[str, Rule]] = {
         "lanes_count": number(1, integer=True),
         "vehicles_count": number(0, integer=True),
         "traffic_window": interval(contains_zero=True),

@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
 
+from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
 
 
@@ -36,6 +38,11 @@ class ScriptedDriver:
 
     def __init__(self, env: gym.Env, yield_to_crossing: bool = True, horizon: float = 2.5, conflict_distance: float = 3.0):
         unwrapped = env.unwrapped
+        if not isinstance(unwrapped, PaperDrivingMixin) or not isinstance(env.action_space, spaces.Box):
+            raise TypeError(
+                "ScriptedDriver drives DACERF-Multilane-v0 and DACERF-Intersection-v0 (with their Box action space), "
+                f"got {type(unwrapped).__name__} with action space {env.action_space}: pass one of those envs"
+            )
         config = unwrapped.config
         self.position_scale, self.speed_scale = config["position_scale"], config["speed_scale"]
         self.n_waypoints = config["reference_waypoints"]

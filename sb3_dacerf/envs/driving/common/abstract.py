@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
-from gymnasium import logger
+from gymnasium import logger, spaces
 from gymnasium.error import ResetNeeded
 from highway_env.envs.common.graphics import EnvViewer
 
@@ -18,6 +19,12 @@ from sb3_dacerf.envs.driving.common.config import COMMON_RULES, Rule, check_conf
 from sb3_dacerf.envs.driving.common.observation import EgoFrameObservation, Scene, observe_scene
 from sb3_dacerf.envs.driving.common.reference import ReferencePath
 from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, reward_terms
+
+if TYPE_CHECKING:
+    # What the mixin is mixed into: type checkers see highway-env's attributes (config, vehicle, road, ...) and methods
+    from highway_env.envs.common.abstract import AbstractEnv as _HighwayEnv
+else:
+    _HighwayEnv = object
 
 DENSITIES = ("sparse", "normal", "dense")
 
@@ -60,7 +67,7 @@ def _headless_video_driver():
             os.environ.pop("SDL_VIDEODRIVER", None)
 
 
-class PaperDrivingMixin:
+class PaperDrivingMixin(_HighwayEnv):
     """
     The paper's task layer over a highway-env environment: put it first in the bases of a subclass of a
     highway-env environment, which must build ``self.reference`` (a :class:`ReferencePath`) and
@@ -75,13 +82,17 @@ class PaperDrivingMixin:
     :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
     """
 
-    DENSITY_CONFIGS: dict[str, dict] = {}
+    DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}
     """Config overrides of each traffic density."""
-    CONFIG_RULES: dict[str, Rule] = {}
+    CONFIG_RULES: ClassVar[dict[str, Rule]] = {}
     """Type and range checks of the scenario's own config keys (see :mod:`.config`)."""
 
     reference: ReferencePath
     reference_speed: float
+    # Set by highway-env: None until the first reset / render
+    observation_space: spaces.Space | None
+    action_space: spaces.Space | None
+    viewer: EnvViewer | None
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None, density: str = "normal") -> None:
         if density not in DENSITIES:
@@ -280,22 +291,28 @@ class PaperDrivingMixin:
         """
         return reward_terms(
             self.config,
-            self.scene,
+            self._current_scene(),
             self.vehicle,
             self.action_type.applied_increment,
             self.reference_speed,
             self._severe_penalty(),
         )
 
+    def _current_scene(self) -> Scene:
+        """The scene of the current step (``self.scene``); ``ResetNeeded`` before the first ``reset()``."""
+        if self.scene is None:
+            raise ResetNeeded("The env has no scene before reset(): call env.reset(seed=...) first")
+        return self.scene
+
     def _reward(self, action: np.ndarray) -> float:
         return float(sum(self._rewards(action).values()))
 
     def _is_terminated(self) -> bool:
         """Collisions and leaving the road end the episode."""
-        return bool(self.vehicle.crashed or self.scene.road_clearance < 0)
+        return bool(self.vehicle.crashed or self._current_scene().road_clearance < 0)
 
     def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
-        crashed, off_road = bool(self.vehicle.crashed), bool(self.scene.road_clearance < 0)
+        crashed, off_road = bool(self.vehicle.crashed), bool(self._current_scene().road_clearance < 0)
         return {
             "speed": float(self.vehicle.speed),
             "reference_speed": float(self.reference_speed),

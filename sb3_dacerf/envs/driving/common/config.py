@@ -11,16 +11,18 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Callable, Sequence
+from typing import TypeGuard
 
 Rule = Callable[[object], str | None]
 """A check of one value: ``None`` if valid, else what was expected (e.g. ``"a number > 0"``)."""
 
 
-def _is_number(value: object) -> bool:
+def _is_number(value: object) -> TypeGuard[float]:
+    """A real number that is not a ``bool`` (typed as ``float``, which every ``numbers.Real`` compares like)."""
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
-def _is_integer(value: object) -> bool:
+def _is_integer(value: object) -> TypeGuard[int]:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
@@ -35,7 +37,7 @@ def number(low: float | None = None, high: float | None = None, *, low_open: boo
     expected = f"{kind} {' and '.join(bounds)}".strip()
 
     def check(value: object) -> str | None:
-        if not (_is_integer(value) if integer else _is_number(value)):
+        if not _is_number(value) or (integer and not _is_integer(value)):
             return expected
         if value != value:  # NaN
             return expected
@@ -59,7 +61,7 @@ def interval(low: float | None = None, high: float | None = None, *, contains_ze
         lo, hi = value
         if not (_is_number(lo) and _is_number(hi)) or not lo <= hi:
             return expected
-        if low is not None and lo < low or high is not None and hi > high:
+        if (low is not None and lo < low) or (high is not None and hi > high):
             return expected
         if contains_zero and not lo <= 0 <= hi:
             return expected
