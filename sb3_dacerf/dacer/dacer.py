@@ -1,3 +1,4 @@
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -23,27 +24,32 @@ class DACER(TwinCriticAlgorithm):
     Paper: "Diffusion Actor-Critic with Entropy Regulator", Wang et al., NeurIPS 2024 (arXiv:2405.15177);
     official JAX code: https://github.com/happy-yan/DACER-Diffusion-with-Online-RL
 
+    The defaults are the official code's (``relax/algorithm/dacer.py``, ``relax/network/dacer.py``,
+    ``relax/utils/diffusion.py`` and ``scripts/train_mujoco.py`` there): learning rate 1e-4, ``log α`` starting at
+    ``log 3``, the VP noise schedule, ``x_T ~ N(0, I)``, 20 steps, 3 x 256 Mish networks, ``tau=0.005``, policy
+    delay 2, α updated every 10,000 updates with learning rate 0.03 towards ``-0.9 * action_dim``.
     Differences from the official code: the critics are this package's clipped double-Q critics (shared with
     DACERF) instead of DSAC-T's distributional critics, there is no built-in reward scaling (its 0.2; use
-    ``VecNormalize`` or a reward wrapper), and the mixture has diagonal rather than full covariances
+    ``gymnasium.wrappers.TransformReward(env, lambda r: 0.2 * r)`` or ``VecNormalize``), and the mixture has diagonal rather than full covariances
     (a full 38 x 38 covariance per component is ill-determined by 200 samples).
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
     :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: learning rate for the optimizer of the actor and of the critics,
-        it can be a function of the current progress remaining (from 1 to 0)
+    :param learning_rate: learning rate for the optimizer of the actor and of the critics (1e-4, the official
+        code's; SB3's SAC uses 3e-4), it can be a function of the current progress remaining (from 1 to 0)
     :param tau: the soft update coefficient ("Polyak update", between 0 and 1)
     :param policy_delay: Policy and target network updates happen once every ``policy_delay`` critic updates
     :param n_diffusion_steps: Number of reverse diffusion steps per action (20 in both papers); also accepted in
         ``policy_kwargs``, 20 if given in neither
     :param alpha_learning_rate: Learning rate (Adam) of ``log α``
-    :param initial_log_alpha: Initial ``log α`` (the exploration noise starts at ``0.15 exp(initial_log_alpha)``)
+    :param initial_log_alpha: Initial ``log α`` (the exploration noise starts at ``0.15 exp(initial_log_alpha)``);
+        ``log 3``, as in the official code
     :param target_entropy: Target entropy of the policy; ``"auto"`` is ``-0.9 * action_dim``
     :param alpha_update_interval: The entropy is estimated and ``α`` updated once every that many updates
         (at the first update, then every ``alpha_update_interval``)
     :param entropy_samples: Number of actions sampled per state for the entropy estimate
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
-        ``dict(net_arch=[256, 256], beta_schedule="linear", exploration_noise_scale=0.1)``
+        ``dict(net_arch=[256, 256], beta_schedule="cosine", exploration_noise_scale=0.1)``
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     :param kwargs: The other arguments of SB3's ``OffPolicyAlgorithm`` (``buffer_size``, ``learning_starts``,
         ``batch_size``, ``gamma``, ``train_freq``, ``gradient_steps``, ``action_noise`` (added on top of the
@@ -63,7 +69,7 @@ class DACER(TwinCriticAlgorithm):
         self,
         policy: str | type[DACERPolicy],
         env: GymEnv | str,
-        learning_rate: float | Schedule = 3e-4,
+        learning_rate: float | Schedule = 1e-4,
         *,
         policy_kwargs: dict[str, Any] | None = None,
         tau: float = 0.005,
@@ -71,7 +77,7 @@ class DACER(TwinCriticAlgorithm):
         n_diffusion_steps: int | None = None,
         target_entropy: str | float = "auto",
         alpha_learning_rate: float = 3e-2,
-        initial_log_alpha: float = 1.2,
+        initial_log_alpha: float = math.log(3.0),
         alpha_update_interval: int = 10_000,
         entropy_samples: int = 200,
         _init_setup_model: bool = True,
