@@ -49,7 +49,9 @@ def main() -> None:
     print("| weighting | " + " | ".join(TRANSFORMS) + " |")
     print("|---|" + "---|" * len(TRANSFORMS))
     for weighting in args.weightings:
-        cells = [balance(weighting, scale, shift, args.timesteps, args.batches, args.seed) for scale, shift in TRANSFORMS.values()]
+        cells = [
+            balance(weighting, scale, shift, args.timesteps, args.batches, args.seed) for scale, shift in TRANSFORMS.values()
+        ]
         print(f"| {weighting} | " + " | ".join(f"{cell:.3g}" for cell in cells) + " |", flush=True)
 
 
