@@ -23,6 +23,7 @@ Usage::
 """
 
 import argparse
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -136,9 +137,9 @@ def plot(results: dict[str, dict[tuple[str, str], float]], title: str, path: Pat
         axis.set_title(size)
         axis.grid(axis="y", which="both", alpha=0.3)
     axes[0][0].set_ylabel("median latency, one observation (ms)")
-    axes[0][0].legend(fontsize="small")
-    figure.suptitle(title, fontsize=8)
-    figure.tight_layout()
+    figure.legend(*axes[0][0].get_legend_handles_labels(), loc="lower center", ncol=len(names), fontsize="small")
+    figure.suptitle("\n".join(textwrap.wrap(title, 200)), fontsize=8)
+    figure.tight_layout(rect=(0, 0.06, 1, 1))
     figure.savefig(path, dpi=120)
 
 

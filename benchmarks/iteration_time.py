@@ -23,7 +23,8 @@ Usage::
 """
 
 import argparse
-import time
+import textwrap
+from pathlib import Path
 from typing import Any
 
 import matplotlib
@@ -34,6 +35,7 @@ import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.logger import Logger
 from timing import (
+    CLOCKS,
     CONFIGURATIONS,
     NET_ARCH,
     SIZES,
@@ -89,10 +91,36 @@ def measure(
     dacer = models["DACER"]
     assert isinstance(dacer, DACER)
     observations = dacer.replay_buffer.sample(batch_size).observations
-    start = time.perf_counter()
+    start = CLOCKS[clock]()
     dacer._estimate_entropy(observations)
-    medians["DACER entropy estimate"] = time.perf_counter() - start
+    medians["DACER entropy estimate"] = CLOCKS[clock]() - start
     return medians
+
+
+def plot(
+    results: dict[tuple[str, int], dict[str, float]],
+    names: list[str],
+    sizes: list[str],
+    batch_sizes: list[int],
+    title: str,
+    path: Path,
+) -> None:
+    """Bars of the median time per gradient step, one panel per batch size."""
+    figure, axes = plt.subplots(1, len(batch_sizes), figsize=(max(7, 6 * len(batch_sizes)), 4.4), squeeze=False)
+    width = 0.8 / len(names)
+    for axis, batch_size in zip(axes[0], batch_sizes):
+        for i, name in enumerate(names):
+            values = [1e3 * results[(size, batch_size)][name] for size in sizes]
+            axis.bar(np.arange(len(sizes)) + (i - (len(names) - 1) / 2) * width, values, width, label=name)
+        axis.set_xticks(np.arange(len(sizes)), sizes)
+        axis.set_title(f"batch {batch_size}")
+        axis.set_ylabel("median time per gradient step (ms)")
+        axis.grid(axis="y", alpha=0.3)
+        axis.set_ylim(top=1.3 * axis.get_ylim()[1])  # room for the legend above the tallest bars
+    axes[0][0].legend(ncol=3, fontsize="small", loc="upper left")
+    figure.suptitle("\n".join(textwrap.wrap(title, 110)), fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
 
 
 def main() -> None:
@@ -154,21 +182,7 @@ def main() -> None:
                 line += f"; {dacer} / {name} = {speedup:.2f} (≥ 3.4: {verdict(speedup >= 3.4)})"
             print(line)
 
-    figure, axes = plt.subplots(1, len(batch_sizes), figsize=(6 * len(batch_sizes), 4), squeeze=False)
-    width = 0.8 / len(names)
-    for axis, batch_size in zip(axes[0], batch_sizes):
-        for i, name in enumerate(names):
-            values = [1e3 * results[(size, batch_size)][name] for size in args.sizes]
-            axis.bar(np.arange(len(args.sizes)) + (i - (len(names) - 1) / 2) * width, values, width, label=name)
-        axis.set_xticks(np.arange(len(args.sizes)), args.sizes)
-        axis.set_title(f"batch {batch_size}")
-        axis.set_ylabel("median time per gradient step (ms)")
-        axis.grid(axis="y", alpha=0.3)
-        axis.set_ylim(top=1.3 * axis.get_ylim()[1])  # room for the legend above the tallest bars
-    axes[0][0].legend(ncol=3, fontsize="small", loc="upper left")
-    figure.suptitle(header, fontsize=7)
-    figure.tight_layout()
-    figure.savefig(args.plot, dpi=120)
+    plot(results, names, args.sizes, batch_sizes, header, args.plot)
     print(f"\nPlot: {args.plot}")
 
 
