@@ -30,8 +30,9 @@ class DACER(TwinCriticAlgorithm):
     delay 2, α updated every 10,000 updates with learning rate 0.03 towards ``-0.9 * action_dim``.
     Differences from the official code: the critics are this package's clipped double-Q critics (shared with
     DACERF) instead of DSAC-T's distributional critics, there is no built-in reward scaling (its 0.2; use
-    ``gymnasium.wrappers.TransformReward(env, lambda r: 0.2 * r)`` or ``VecNormalize``), and the mixture has diagonal rather than full covariances
-    (a full 38 x 38 covariance per component is ill-determined by 200 samples).
+    ``gymnasium.wrappers.TransformReward(env, lambda r: 0.2 * r)`` or ``VecNormalize``), and the mixture has
+    diagonal rather than full covariances (a full 38 x 38 covariance per component is ill-determined by 200
+    samples).
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
     :param env: The environment to learn from (if registered in Gym, can be str)
