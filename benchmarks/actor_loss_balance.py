@@ -49,8 +49,9 @@ def main() -> None:
     print("| weighting | " + " | ".join(TRANSFORMS) + " |")
     print("|---|" + "---|" * len(TRANSFORMS))
     for weighting in args.weightings:
-        settings = (args.timesteps, args.batches, args.seed)
-        cells = [balance(weighting, scale, shift, *settings) for scale, shift in TRANSFORMS.values()]
+        cells = [
+            balance(weighting, scale, shift, args.timesteps, args.batches, args.seed) for scale, shift in TRANSFORMS.values()
+        ]
         print(f"| {weighting} | " + " | ".join(f"{cell:.3g}" for cell in cells) + " |", flush=True)
 
 

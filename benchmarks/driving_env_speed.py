@@ -37,59 +37,55 @@ import gymnasium as gym
 import highway_env  # noqa: F401  (registers highway-v0 / intersection-v0)
 import numpy as np
 from highway_env.envs.common.abstract import AbstractEnv
-from highway_env.envs.highway_env import HighwayEnv
-from highway_env.envs.intersection_env import IntersectionEnv as HighwayIntersectionEnv
 
 from sb3_dacerf.envs.driving.intersection import IntersectionEnv
 from sb3_dacerf.envs.driving.multilane import MultilaneEnv
 
 
-class StockLayerMixin:
-    """highway-env's own step loop and reset over our scenario: no scene, observation or reward of ours."""
+class StockLayer:
+    """
+    highway-env's own task layer over one of our scenarios: our road, traffic and vehicle recycling under
+    highway-env's step loop, ``Kinematics`` observation, ``ContinuousAction``, reward, termination
+    (``offroad_terminal`` on) and info. Each scenario of ours derives from a highway-env environment (``HighwayEnv``,
+    ``IntersectionEnv``); that class's methods are the ones used. Combine with a scenario by :func:`with_layer`.
+    """
+
+    @classmethod
+    def stock_class(cls) -> type[AbstractEnv]:
+        """The highway-env environment our scenario derives from: the first highway-env class in the MRO."""
+        return next(base for base in cls.__mro__ if base.__module__.startswith("highway_env.") and base is not AbstractEnv)
+
+    @classmethod
+    def default_config(cls) -> dict:
+        stock = cls.stock_class().default_config()
+        return {**stock, **super().default_config(), "action": {"type": "ContinuousAction"}, "offroad_terminal": True}
+
+    def define_spaces(self) -> None:
+        AbstractEnv.define_spaces(self)
 
     def _reset(self) -> None:
         # Our scenario's road and vehicles (through highway-env's _reset), without our perception of the scene.
-        self._stock_base._reset(self)
+        self.stock_class()._reset(self)
         self.vehicle.MIN_SPEED = 0.0
 
+    def step(self, action: np.ndarray) -> tuple:
+        # The intersection's step is highway-env's step, then its traffic update (clear, spawn), as ours does
+        return self.stock_class().step(self, action)
 
-class StockLayerMultilaneEnv(StockLayerMixin, MultilaneEnv):
-    """Our multi-lane traffic under highway-env's own observation, action and reward."""
+    def _reward(self, action: np.ndarray) -> float:
+        return self.stock_class()._reward(self, action)
 
-    _stock_base = HighwayEnv
+    def _rewards(self, action: np.ndarray) -> dict:
+        return self.stock_class()._rewards(self, action)
 
-    @classmethod
-    def default_config(cls) -> dict:
-        stock = HighwayEnv.default_config()
-        return {**stock, **super().default_config(), "action": {"type": "ContinuousAction"}, "offroad_terminal": True}
+    def _is_terminated(self) -> bool:
+        return self.stock_class()._is_terminated(self)
 
-    define_spaces = AbstractEnv.define_spaces
-    step = AbstractEnv.step
-    _reward = HighwayEnv._reward
-    _rewards = HighwayEnv._rewards
-    _is_terminated = HighwayEnv._is_terminated
-    _info = AbstractEnv._info
+    def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
+        return self.stock_class()._info(self, obs, action)
 
 
-class StockLayerIntersectionEnv(StockLayerMixin, IntersectionEnv):
-    """Our intersection traffic under highway-env's own observation, action and reward."""
-
-    _stock_base = HighwayIntersectionEnv
-
-    @classmethod
-    def default_config(cls) -> dict:
-        stock = HighwayIntersectionEnv.default_config()
-        return {**stock, **super().default_config(), "action": {"type": "ContinuousAction"}, "offroad_terminal": True}
-
-    define_spaces = AbstractEnv.define_spaces
-    step = HighwayIntersectionEnv.step  # highway-env's step, then its traffic update (clear, spawn) as ours does
-    _reward = HighwayIntersectionEnv._reward
-    _rewards = HighwayIntersectionEnv._rewards
-    _is_terminated = HighwayIntersectionEnv._is_terminated
-    _info = HighwayIntersectionEnv._info
-
-
-class NoLayerMixin:
+class NoLayer(StockLayer):
     """A constant observation and zero reward: the bare simulation of the traffic."""
 
     def define_spaces(self) -> None:
@@ -103,17 +99,15 @@ class NoLayerMixin:
         return {}
 
     def _is_terminated(self) -> bool:
-        # Our termination, so that episodes (and so the simulated traffic) are the same as ours.
-        return self.vehicle.crashed or self._road_clearance(self.vehicle.position) < 0
+        # Our termination, so that episodes (and so the simulated traffic) are the same as ours
+        off_road = self._road_clearance(self.vehicle.position) < 0
+        exited = self._has_exited() if hasattr(self, "_has_exited") else False  # the intersection's exits
+        return bool(self.vehicle.crashed or off_road or exited)
 
 
-class NoLayerMultilaneEnv(NoLayerMixin, StockLayerMultilaneEnv):
-    pass
-
-
-class NoLayerIntersectionEnv(NoLayerMixin, StockLayerIntersectionEnv):
-    def _is_terminated(self) -> bool:
-        return super()._is_terminated() or self._has_exited()
+def with_layer(layer: type[StockLayer], scenario: type[AbstractEnv]) -> type[AbstractEnv]:
+    """``scenario`` (``MultilaneEnv`` or ``IntersectionEnv``) under ``layer`` (:class:`StockLayer` or :class:`NoLayer`)."""
+    return type(f"{layer.__name__}{scenario.__name__}", (layer, scenario), {})
 
 
 def time_steps(env: gym.Env, steps: int, seed: int, clock=time.process_time) -> float:
@@ -156,14 +150,14 @@ def main() -> None:
     scenarios = {
         "multilane": {
             "highway-env default (highway-v0)": lambda: gym.make("highway-v0", config=stock_config),
-            "same traffic, highway-env layer": lambda: StockLayerMultilaneEnv(density=args.density),
-            "same traffic, no layer": lambda: NoLayerMultilaneEnv(density=args.density),
+            "same traffic, highway-env layer": lambda: with_layer(StockLayer, MultilaneEnv)(density=args.density),
+            "same traffic, no layer": lambda: with_layer(NoLayer, MultilaneEnv)(density=args.density),
             "ours (DACERF-Multilane-v0)": lambda: MultilaneEnv(density=args.density),
         },
         "intersection": {
             "highway-env default (intersection-v0)": lambda: gym.make("intersection-v0", config=stock_config),
-            "same traffic, highway-env layer": lambda: StockLayerIntersectionEnv(density=args.density),
-            "same traffic, no layer": lambda: NoLayerIntersectionEnv(density=args.density),
+            "same traffic, highway-env layer": lambda: with_layer(StockLayer, IntersectionEnv)(density=args.density),
+            "same traffic, no layer": lambda: with_layer(NoLayer, IntersectionEnv)(density=args.density),
             "ours (DACERF-Intersection-v0)": lambda: IntersectionEnv(density=args.density),
         },
     }

@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 import torch as th
-from inference_latency import SpacesOnly, interleaved_medians, machine_name
 from stable_baselines3 import SAC
 from stable_baselines3.sac.policies import SACPolicy
+from timing import SpacesOnly, interleaved_medians, load_average, machine_name
 from torch import nn
 
 from sb3_dacerf import DACERF
@@ -142,7 +142,7 @@ def main() -> None:
     lines = [
         f"Single-observation latency, median of {n_calls} interleaved calls, {args.device.upper()}, "
         f"{args.threads} thread(s); actor {'x'.join(map(str, args.net_arch))}, {args.obs_dim} observations, "
-        f"{args.action_dim} actions; {machine_name()}, onnxruntime {ort.__version__}.",
+        f"{args.action_dim} actions; {machine_name()}, onnxruntime {ort.__version__}; {load_average()} at the end.",
         "",
         "| form | DACERF (µs) | SAC (µs) | DACERF / SAC | DACERF speed-up over its `model.predict` |",
         "|---|---:|---:|---:|---:|",

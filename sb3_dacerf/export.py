@@ -212,7 +212,7 @@ class ExportableDiffusionPolicy(ExportablePolicy):
         # The reverse steps of DiffusionActor.sample from t = T - 1 down to 0, unrolled; without noise, x_T = 0 and
         # the terms of the (zero) action and posterior noise are left out
         state_term = features @ self.state_weight
-        actions = None if noise is None else 0.5 * noise[:, 0]
+        actions = None if noise is None else noise[:, 0]  # x_T = noise[:, 0], as in DiffusionActor.sample
         for t in reversed(range(len(self.reverse_coefficients))):
             c0, c1, m0, m1, std = self.reverse_coefficients[t]
             hidden = state_term + self.time_terms[t]

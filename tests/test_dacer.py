@@ -2,12 +2,14 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_dacerf import DACER
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
+from sb3_dacerf.dacer.policies import diffusion_betas
 
 
 @pytest.fixture
@@ -27,16 +29,54 @@ def test_learns_on_box_observations_and_logs_the_paper_quantities(tmp_path, fast
     assert math.isfinite(model.entropy)
 
 
+# The official JAX code, github.com/happy-yan/DACER-Diffusion-with-Online-RL at commit 848c1f2 (2025-08-14):
+# relax/algorithm/dacer.py (lr=1e-4, alpha_lr=3e-2, tau=0.005, delay_update=2, delay_alpha_update=10000,
+# num_samples=200), relax/network/dacer.py (log_alpha = log 3, target entropy -0.9 * act_dim, exploration noise
+# 0.15 * alpha, 20 steps), relax/utils/diffusion.py (GaussianDiffusion uses vp_beta_schedule, x_T ~ N(0, I)),
+# scripts/train_mujoco.py (--lr 1e-4, 3 x 256 hidden layers, Mish for DACER).
+OFFICIAL_LEARNING_RATE, OFFICIAL_LOG_ALPHA = 1e-4, math.log(3.0)
+
+
+def official_vp_betas(T):
+    # relax/utils/diffusion.py, BetaScheduleCoefficients.vp_beta_schedule, written out with its numbers
+    return np.array([1 - math.exp(-0.1 / T - 0.5 * (10.0 - 0.1) * (2 * t - 1) / T**2) for t in range(1, T + 1)])
+
+
 def test_official_defaults():
     model = DACER("MlpPolicy", "Pendulum-v1")
+    assert model.learning_rate == OFFICIAL_LEARNING_RATE
+    assert model.actor.optimizer.param_groups[0]["lr"] == model.critic.optimizer.param_groups[0]["lr"] == 1e-4
     assert (model.tau, model.policy_delay, model.gamma) == (0.005, 2, 0.99)
     assert (model.alpha_learning_rate, model.alpha_update_interval, model.entropy_samples) == (3e-2, 10_000, 200)
     assert model.target_entropy == pytest.approx(-0.9)
-    assert model.actor.log_alpha.item() == pytest.approx(1.2)
-    assert (model.actor.n_diffusion_steps, model.actor.beta_schedule, model.actor.exploration_noise_scale) == (20, "cosine", 0.15)
+    assert model.actor.log_alpha.item() == pytest.approx(OFFICIAL_LOG_ALPHA)
+    assert (model.actor.n_diffusion_steps, model.actor.beta_schedule, model.actor.exploration_noise_scale) == (20, "vp", 0.15)
     assert [m.out_features for m in model.actor.network if isinstance(m, th.nn.Linear)] == [256, 256, 256, 1]
     assert any(isinstance(m, th.nn.Mish) for m in model.actor.network)
     assert model.policy.critic.n_critics == 2
+
+
+def test_vp_schedule_is_the_official_one():
+    betas = diffusion_betas("vp", 20)
+    np.testing.assert_allclose(betas, official_vp_betas(20), rtol=1e-12)
+    # The first reverse step (t = T): x̂_0 = 12.5 x_T - ..., x_T kept with weight 0.78 in the posterior mean
+    alphas_cumprod = np.cumprod(1 - betas)
+    assert math.sqrt(1 / alphas_cumprod[-1]) == pytest.approx(12.49, abs=0.01)
+    model = DACER("MlpPolicy", "Pendulum-v1")
+    c0, _, _, m1, _ = model.actor.reverse_coefficients[-1]
+    assert (c0, m1) == (pytest.approx(12.49, abs=0.01), pytest.approx(0.780, abs=1e-3))
+
+
+def test_reverse_process_starts_from_standard_normal_noise(fast):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **fast)
+    starts = []
+    # The noisy action x_t is the network input after the state features, the first call is at t = T
+    model.actor.network.register_forward_pre_hook(lambda _, inputs: starts.append(inputs[0][:, 3:4].clone()))
+    observations = th.as_tensor(np.stack([model.observation_space.sample() for _ in range(4096)]))
+    with th.no_grad():
+        model.actor(observations)
+    assert starts[0].std().item() == pytest.approx(1.0, abs=0.05)
+    assert starts[0].mean().item() == pytest.approx(0.0, abs=0.05)
 
 
 def test_one_network_call_per_diffusion_step(fast):
@@ -66,7 +106,7 @@ def test_alpha_moves_towards_the_target_entropy_once_per_interval(target_entropy
     model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **regulator, **fast)
     model.learn(59)  # updates 1..9: the entropy regulator runs at updates 1, 5 and 9
     # Adam's steps have size lr while the sign of the gradient H - H_target does not change
-    assert model.actor.log_alpha.item() == pytest.approx(1.2 + direction * 3 * 3e-2, abs=1e-4)
+    assert model.actor.log_alpha.item() == pytest.approx(OFFICIAL_LOG_ALPHA + direction * 3 * 3e-2, abs=1e-4)
     assert model.alpha_optimizer.state_dict()["state"][0]["step"] == 3
 
 
@@ -89,16 +129,35 @@ def test_save_load_restores_the_entropy_regulator(tmp_path, fast):
     model.save(tmp_path / "dacer")
     loaded = DACER.load(tmp_path / "dacer")
     assert loaded.actor.n_diffusion_steps == 5 and loaded.policy_delay == 2
-    assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item() != 1.2
+    assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item() != pytest.approx(OFFICIAL_LOG_ALPHA)
     assert loaded.alpha_optimizer.state_dict()["state"][0]["step"] == model.alpha_optimizer.state_dict()["state"][0]["step"]
     assert loaded.alpha_optimizer.param_groups[0]["params"][0] is loaded.actor.log_alpha
     assert loaded.entropy == model.entropy
 
 
-def test_linear_beta_schedule(fast):
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "policy_kwargs": dict(net_arch=[16], beta_schedule="linear")})
+def test_beta_schedules_match_their_definitions():
+    T = 20
+    np.testing.assert_allclose(diffusion_betas("linear", T)[[0, -1]], [1e-4, 2e-2])
+    # Cosine (Nichol & Dhariwal): ᾱ_t = f(t) / f(0), f(t) = cos²((t/T + s) / (1 + s) π/2), s = 0.008, β clipped at 0.999
+    f = np.cos((np.arange(T + 1) / T + 0.008) / 1.008 * np.pi / 2) ** 2
+    cosine = diffusion_betas("cosine", T)
+    np.testing.assert_allclose(np.cumprod(1 - cosine)[:-1], f[1:-1] / f[0], rtol=1e-9)
+    assert cosine[-1] == 0.999
+
+
+@pytest.mark.parametrize("schedule", ["vp", "cosine", "linear"])
+def test_every_beta_schedule_is_selectable_and_trains(schedule, fast):
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "policy_kwargs": dict(net_arch=[16], beta_schedule=schedule)})
+    assert model.actor.beta_schedule == schedule
+    # The reverse process uses the chosen schedule: at t = T, x̂_0 = x_T / sqrt(ᾱ_T) - ...
+    alpha_bar = np.prod(1 - diffusion_betas(schedule, 5))
+    assert model.actor.reverse_coefficients[-1][0] == pytest.approx(1 / math.sqrt(alpha_bar))
     model.learn(60)
-    with pytest.raises(ValueError, match="Unknown beta_schedule 'quadratic'"):
+    assert np.all(np.abs(model.predict(model.observation_space.sample())[0]) <= 2.0)
+
+
+def test_unknown_beta_schedule_is_refused():
+    with pytest.raises(ValueError, match="Unknown beta_schedule 'quadratic': use 'vp', 'cosine' or 'linear'"):
         DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(beta_schedule="quadratic"))
 
 
@@ -123,7 +182,7 @@ def test_noise_holds_the_start_and_the_posterior_noise_of_each_reverse_step(fast
     th.manual_seed(1)
     start, steps = th.randn((8, 1)), th.randn((n_diffusion_steps, 8, 1))
     assert th.equal(noise[:, 0], start) and th.equal(noise[:, 1:], steps[1:].transpose(0, 1))
-    # x_T = 0.5 noise[:, 0]: with one step and no network output, the action is x̂_0 = x_T / sqrt(ᾱ_0)
+    # x_T = noise[:, 0]: with one step and no network output, the action is x̂_0 = x_T / sqrt(ᾱ_0)
     if n_diffusion_steps == 1:
         with th.no_grad():
             for module in actor.network.modules():
@@ -131,4 +190,4 @@ def test_noise_holds_the_start_and_the_posterior_noise_of_each_reverse_step(fast
                     module.weight.zero_()
                     module.bias.zero_()
             c0 = actor.reverse_coefficients[0][0]
-            th.testing.assert_close(actor.sample(features, noise), (c0 * 0.5 * noise[:, 0]).clamp(-1, 1))
+            th.testing.assert_close(actor.sample(features, noise), (c0 * noise[:, 0]).clamp(-1, 1))

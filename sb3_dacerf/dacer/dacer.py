@@ -1,3 +1,4 @@
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -32,15 +33,20 @@ class DACER(TwinCriticAlgorithm):
     Paper: "Diffusion Actor-Critic with Entropy Regulator", Wang et al., NeurIPS 2024 (arXiv:2405.15177);
     official JAX code: https://github.com/happy-yan/DACER-Diffusion-with-Online-RL
 
+    The defaults are the official code's (``relax/algorithm/dacer.py``, ``relax/network/dacer.py``,
+    ``relax/utils/diffusion.py`` and ``scripts/train_mujoco.py`` there): learning rate 1e-4, ``log α`` starting at
+    ``log 3``, the VP noise schedule, ``x_T ~ N(0, I)``, 20 steps, 3 x 256 Mish networks, ``tau=0.005``, policy
+    delay 2, α updated every 10,000 updates with learning rate 0.03 towards ``-0.9 * action_dim``.
     Differences from the official code: the critics are this package's clipped double-Q critics (shared with
     DACERF) instead of DSAC-T's distributional critics, there is no built-in reward scaling (its 0.2; use
-    ``VecNormalize`` or a reward wrapper), and the mixture has diagonal rather than full covariances
-    (a full 38 x 38 covariance per component is ill-determined by 200 samples).
+    ``gymnasium.wrappers.TransformReward(env, lambda r: 0.2 * r)`` or ``VecNormalize``), and the mixture has
+    diagonal rather than full covariances (a full 38 x 38 covariance per component is ill-determined by 200
+    samples).
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
     :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: learning rate for the optimizer of the actor and of the critics,
-        it can be a function of the current progress remaining (from 1 to 0)
+    :param learning_rate: learning rate for the optimizer of the actor and of the critics (1e-4, the official
+        code's; SB3's SAC uses 3e-4), it can be a function of the current progress remaining (from 1 to 0)
     :param buffer_size: size of the replay buffer
     :param learning_starts: how many steps of the model to collect transitions for before learning starts
     :param batch_size: Minibatch size for each gradient update
@@ -64,7 +70,8 @@ class DACER(TwinCriticAlgorithm):
         ``policy_kwargs``, 20 if given in neither
     :param target_entropy: Target entropy of the policy; ``"auto"`` is ``-0.9 * action_dim``
     :param alpha_learning_rate: Learning rate (Adam) of ``log α``
-    :param initial_log_alpha: Initial ``log α`` (the exploration noise starts at ``0.15 exp(initial_log_alpha)``)
+    :param initial_log_alpha: Initial ``log α`` (the exploration noise starts at ``0.15 exp(initial_log_alpha)``);
+        ``log 3``, as in the official code
     :param alpha_update_interval: The entropy is estimated and ``α`` updated once every that many updates
         (at the first update, then every ``alpha_update_interval``)
     :param entropy_samples: Number of actions sampled per state for the entropy estimate
@@ -102,7 +109,7 @@ class DACER(TwinCriticAlgorithm):
         self,
         policy: str | type[DACERPolicy],
         env: GymEnv | str,
-        learning_rate: float | Schedule = 3e-4,
+        learning_rate: float | Schedule = 1e-4,
         buffer_size: int = 1_000_000,  # 1e6
         learning_starts: int = 100,
         batch_size: int = 256,
@@ -119,7 +126,7 @@ class DACER(TwinCriticAlgorithm):
         n_diffusion_steps: int | None = None,
         target_entropy: str | float = "auto",
         alpha_learning_rate: float = 3e-2,
-        initial_log_alpha: float = 1.2,
+        initial_log_alpha: float = math.log(3.0),
         alpha_update_interval: int = 10_000,
         entropy_samples: int = 200,
         stats_window_size: int = 100,

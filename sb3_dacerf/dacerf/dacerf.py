@@ -87,8 +87,10 @@ class DACERF(TwinCriticAlgorithm):
     :param entropy_estimate: How the policy's entropy is estimated to learn ``α``: ``"fit"`` fits a diagonal
         Gaussian to 8 flow samples at each of 32 states of the batch (flow spread plus the noise's variance),
         ``"noise"`` uses the closed-form entropy of the added noise only (the flow taken as deterministic)
-    :param compile_langevin: Run the Langevin loop through ``torch.compile`` (same targets; the first update
-        compiles for ~30 s on a CPU, then the loop is faster: see benchmarks/iteration_time.py)
+    :param compile_langevin: Run the Langevin loop through ``torch.compile`` (same targets). Meant for GPUs,
+        where kernel launches weigh more (not measured yet). On a CPU the first update compiles for ~30 s per batch
+        shape, and a whole gradient step then took 0.84-1.05x the eager step's time (benchmarks/README.md,
+        "Training iteration time"): the matrix products, not Python overhead, dominate there, so leave it off on CPU
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
