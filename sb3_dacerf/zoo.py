@@ -74,6 +74,22 @@ def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[st
     return hyperparams
 
 
+def sample_optimisation_params(trial: optuna.Trial) -> dict[str, Any]:
+    """
+    The optimisation settings both samplers draw first: learning rate, ``batch_size_pow`` (2**7 = 128 to
+    2**10 = 1024), ``tau`` and ``policy_delay``.
+
+    :param trial: Optuna trial
+    :return: the drawn values, named as Optuna names them
+    """
+    return {
+        "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),
+        "batch_size_pow": trial.suggest_int("batch_size_pow", 7, 10),
+        "tau": trial.suggest_float("tau", 1e-4, 0.02, log=True),
+        "policy_delay": trial.suggest_int("policy_delay", 1, 5),
+    }
+
+
 def sample_dacerf_params(
     trial: optuna.Trial,
     n_actions: int,
@@ -92,11 +108,7 @@ def sample_dacerf_params(
     :return: keyword arguments for ``DACERF``
     """
     sampled: dict[str, Any] = {
-        "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),
-        # From 2**7=128 to 2**10=1024 (paper: 512)
-        "batch_size_pow": trial.suggest_int("batch_size_pow", 7, 10),
-        "tau": trial.suggest_float("tau", 1e-4, 0.02, log=True),
-        "policy_delay": trial.suggest_int("policy_delay", 1, 5),
+        **sample_optimisation_params(trial),  # batch size from 128 to 1024 (paper: 512)
         "langevin_steps": trial.suggest_int("langevin_steps", 5, 40, step=5),
         "langevin_step_size": trial.suggest_float("langevin_step_size", 0.003, 0.3, log=True),
         "langevin_temperature": trial.suggest_float("langevin_temperature", 0.001, 0.1, log=True),
@@ -145,11 +157,7 @@ def sample_dacer_params(
     :return: keyword arguments for ``DACER``
     """
     sampled: dict[str, Any] = {
-        "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),
-        # From 2**7=128 to 2**10=1024 (DACER paper: 256)
-        "batch_size_pow": trial.suggest_int("batch_size_pow", 7, 10),
-        "tau": trial.suggest_float("tau", 1e-4, 0.02, log=True),
-        "policy_delay": trial.suggest_int("policy_delay", 1, 5),
+        **sample_optimisation_params(trial),  # batch size from 128 to 1024 (DACER paper: 256)
         "n_diffusion_steps": trial.suggest_categorical("n_diffusion_steps", [5, 10, 20]),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCH)),
         "alpha_learning_rate": trial.suggest_float("alpha_learning_rate", 1e-3, 0.1, log=True),
