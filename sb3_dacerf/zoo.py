@@ -64,9 +64,7 @@ def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[st
     :param policy_kwargs: ``policy_kwargs`` of the YAML entry (optimizer, ...), which the sampled ``net_arch`` updates
     :return: keyword arguments for ``DACERF``
     """
-    hyperparams = sampled_params.copy()
-    hyperparams["batch_size"] = 2 ** hyperparams.pop("batch_size_pow")
-    hyperparams["policy_kwargs"] = {**(policy_kwargs or {}), "net_arch": NET_ARCH[hyperparams.pop("net_arch")]}
+    hyperparams = convert_dacer_params(sampled_params, policy_kwargs)  # the settings both samplers draw
     if "critic_layer_norm" in hyperparams:
         hyperparams["policy_kwargs"]["critic_layer_norm"] = hyperparams.pop("critic_layer_norm")
     if hyperparams.get("ent_coef") == "off":  # Optuna's categorical values: "auto" (learned α) or "off" (paper)
@@ -127,6 +125,7 @@ def sample_dacerf_params(
 def convert_dacer_params(sampled_params: dict[str, Any], policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """
     Turn the values drawn by :func:`sample_dacer_params` (an Optuna trial's ``params``) into DACER arguments.
+    :func:`convert_dacerf_params` starts from it: ``batch_size_pow`` and ``net_arch`` mean the same for both.
 
     :param sampled_params: Optuna parameters, as named in :func:`sample_dacer_params`
     :param policy_kwargs: ``policy_kwargs`` of the YAML entry, which the sampled ``net_arch`` updates
