@@ -1,6 +1,6 @@
 """
 Tests of the driving examples: training with progress, saving, resuming, evaluating a saved model, exporting a
-learning_curves checkpoint to that format (benchmarks/export_driver.py).
+learning_curves checkpoint to that format (benchmarks/export_driver.py) and rendering a trained driver.
 """
 
 import contextlib
@@ -223,3 +223,42 @@ def test_export_errors_name_the_problem(checkpoint, tmp_path):
     learning_curves.save_checkpoint(DACER("MlpPolicy", env, buffer_size=100, policy_kwargs=dict(net_arch=[8])), dacer, [], 0.0)
     with pytest.raises(SystemExit, match=r"is a dacer run: evaluate_driving.py loads dacerf and sac models only"):
         export.main([str(dacer), str(tmp_path / "model")])
+
+
+def test_render_a_trained_driver(exported, tmp_path, capsys):
+    from PIL import Image
+
+    render = load_example("render_driving")
+    out = str(tmp_path / "frames")
+    [result] = render.main(["--model", exported, "--out-dir", out, "--frames", "3", "--seed", "10001"])
+    printed = capsys.readouterr().out
+    assert "DACERF from" in printed and "observations normalised with" in printed
+    assert f"DACERF-Multilane-v0: seed 10001, {result['steps']} steps, {result['outcome']}" in printed
+    assert result["strip"] == os.path.join(out, "dacerf_multilane.png") and result["gif"].endswith("dacerf_multilane.gif")
+    with Image.open(result["gif"]) as gif:
+        assert gif.n_frames == result["gif_frames"] > 1 and gif.size == (600, 150)
+    strip = np.asarray(Image.open(result["strip"]).convert("RGB"))
+    assert strip.shape == (150, 3 * 600, 3)
+    # the overlays: the reference path and, in the last frame, the path driven so far
+    colors = {tuple(c) for c in strip.reshape(-1, 3)}
+    assert render.REFERENCE_COLOR in colors and render.TRACE_COLOR in colors
+    # the same episode as evaluate_driving.py's with that seed
+    evaluate = load_example("evaluate_driving")
+    results = evaluate.main([exported, "--episodes", "1", "--seed", "10001"])
+    assert results["episode_length"] == result["steps"]
+    assert (result["outcome"] == "arrival") == bool(results["arrival_rate"])
+    assert ("collision" in result["outcome"]) == bool(results["collision_rate"])
+    assert ("off-road" in result["outcome"]) == bool(results["off_road_rate"])
+    # without overlays: highway-env's frames as they are
+    [plain] = render.main(["--model", exported, "--out-dir", out, "--frames", "2", "--seed", "10001", "--no-overlays"])
+    strip = np.asarray(Image.open(plain["strip"]).convert("RGB"))
+    assert strip.shape == (150, 2 * 600, 3) and render.TRACE_COLOR not in {tuple(c) for c in strip.reshape(-1, 3)}
+
+
+def test_render_errors_name_the_problem(tmp_path, capsys):
+    render = load_example("render_driving")
+    with pytest.raises(SystemExit, match=r"no model file .*missing.zip"):
+        render.main(["--model", str(tmp_path / "missing"), "--out-dir", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        render.main(["--algo", "sac", "--out-dir", str(tmp_path)])
+    assert "--algo and --config apply to --model" in capsys.readouterr().err
