@@ -7,9 +7,13 @@ collision and off-road rates and mean episode length over N seeded, deterministi
 
 A model saved by ``examples/train_driving.py --save NAME`` comes with ``NAME_<scenario>.json`` (env id, density,
 config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario>_vecnormalize.pkl``: both are
-found next to the model and used, so only the model path is needed. Arrival is ``info["is_success"]``: the
-route's exit reached at the intersection, the time limit reached without collision or leaving the road on the
-highway. Evaluation seeds default to 10,000 + i, which training resets never use.
+found next to the model and used, so only the model path is needed. ``benchmarks/export_driver.py`` writes the
+same three files from a ``benchmarks/learning_curves.py`` checkpoint (the format of ``examples/models/``), and
+``examples/render_driving.py --model`` renders an episode of such a model, loaded by ``load_driver`` below.
+
+Arrival is ``info["is_success"]``: the route's exit reached at the intersection, the time limit reached without
+collision or leaving the road on the highway. Evaluation seeds default to 10,000 + i, which training resets never
+use.
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ import argparse
 import json
 import os
 import sys
+from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -25,6 +31,26 @@ import numpy as np
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 
 SCENARIOS = {"multilane": "DACERF-Multilane-v0", "intersection": "DACERF-Intersection-v0"}
+
+
+@dataclass
+class Driver:
+    """A saved driver loaded by ``load_driver``: the model, its environment and its observation normalisation."""
+
+    model: Any
+    env: gym.Env
+    env_id: str
+    density: str
+    config: dict
+    vec_normalize: Any  # VecNormalize (training=False) or None
+    stats_path: str | None
+    path: str
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """The deterministic action for a raw (not normalised) observation."""
+        if self.vec_normalize is not None:
+            obs = self.vec_normalize.normalize_obs(obs)
+        return self.model.predict(obs, deterministic=True)[0]
 
 
 def model_paths(model_path: str) -> dict[str, str]:
@@ -86,6 +112,89 @@ def load_algorithm(algo: str):
     return SAC
 
 
+def load_driver(
+    model_path: str,
+    scenario: str | None = None,
+    algo: str | None = None,
+    vec_normalize: str | None = None,
+    density: str | None = None,
+    config: dict | None = None,
+    force: bool = False,
+    render_mode: str | None = None,
+) -> Driver:
+    """
+    Load a saved driver with what was saved beside it (see ``model_paths``), and make its environment.
+
+    Settings left at ``None`` come from the metadata JSON: the scenario, the algorithm (else ``dacerf``), the
+    density (else ``normal``) and the config (``config`` overrides single keys of it). The VecNormalize statistics
+    beside the model are used unless ``vec_normalize`` names another file. Every problem (missing file, another
+    scenario than the model's, a file of another class, spaces that do not match) exits with a message naming it.
+
+    :param model_path: the model .zip (the suffix may be left out)
+    :param scenario: ``multilane``, ``intersection`` or an env id
+    :param algo: ``dacerf`` or ``sac``
+    :param vec_normalize: path of VecNormalize statistics saved with ``VecNormalize.save``
+    :param density: ``sparse``, ``normal`` or ``dense``
+    :param config: env config overrides
+    :param force: allow another scenario than the one the model was trained on
+    :param render_mode: of the environment, e.g. ``"rgb_array"``
+    """
+    paths = model_paths(model_path)
+    if not os.path.isfile(paths["model"]):
+        sys.exit(
+            f"error: no model file {paths['model']!r}: pass the .zip written by train_driving.py --save, "
+            "benchmarks/export_driver.py or model.save()"
+        )
+    metadata = {}
+    if os.path.isfile(paths["metadata"]):
+        with open(paths["metadata"]) as file:
+            metadata = json.load(file)
+    trained_env = metadata.get("env_id")
+    env_id = SCENARIOS.get(scenario, scenario) if scenario else trained_env
+    if env_id is None:
+        sys.exit(
+            f"error: {paths['metadata']!r} not found, so the scenario is unknown: pass --env multilane or --env intersection"
+        )
+    if trained_env and env_id != trained_env and not force:
+        sys.exit(
+            f"error: the model was trained on {trained_env} (per {paths['metadata']}), not {env_id}: "
+            f"leave out --env, or add --force to evaluate it on another scenario"
+        )
+    density = density or metadata.get("density", "normal")
+    config = {**metadata.get("config", {}), **(config or {})}
+    env = gym.make(env_id, density=density, config=config, render_mode=render_mode)
+
+    algo_class = load_algorithm(algo or metadata.get("algo", "dacerf"))
+    try:
+        model = algo_class.load(paths["model"], device="cpu")
+    except Exception as error:  # SB3 raises various errors for a file of another class or a corrupt file
+        sys.exit(f"error: cannot load {paths['model']!r} as {algo_class.__name__} ({error}): check --algo (dacerf or sac)")
+    if not isinstance(model.policy, algo_class.policy_aliases["MlpPolicy"]):  # SAC.load accepts a DACERF file
+        sys.exit(
+            f"error: cannot load {paths['model']!r} as {algo_class.__name__} (it holds a {type(model.policy).__name__}): "
+            "check --algo (dacerf or sac)"
+        )
+    for name in ("observation_space", "action_space"):
+        if getattr(model, name).shape != getattr(env, name).shape:
+            sys.exit(
+                f"error: the model's {name} has shape {getattr(model, name).shape}, {env_id} with this config has "
+                f"{getattr(env, name).shape}: evaluate on the scenario and config the model was trained with"
+            )
+
+    normalizer = None
+    stats = vec_normalize or (paths["vec_normalize"] if os.path.isfile(paths["vec_normalize"]) else None)
+    if vec_normalize and not os.path.isfile(vec_normalize):
+        sys.exit(f"error: no VecNormalize statistics file {vec_normalize!r}: pass the .pkl saved with the model")
+    if stats:
+        from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+        normalizer = VecNormalize.load(stats, DummyVecEnv([lambda: gym.make(env_id, density=density, config=config)]))
+        normalizer.training = False
+        if normalizer.observation_space.shape != env.observation_space.shape:
+            sys.exit(f"error: the statistics in {stats!r} are for observations of another shape: pass the model's own .pkl")
+    return Driver(model, env, env_id, density, config, normalizer, stats, paths["model"])
+
+
 def main(argv: list[str] | None = None) -> dict[str, float]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("model", help="the model .zip (the .zip suffix may be left out)")
@@ -99,58 +208,14 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     parser.add_argument("--force", action="store_true", help="evaluate on another scenario than the model was trained on")
     args = parser.parse_args(argv)
 
-    paths = model_paths(args.model)
-    if not os.path.isfile(paths["model"]):
-        sys.exit(f"error: no model file {paths['model']!r}: pass the .zip written by train_driving.py --save (or model.save())")
-    metadata = {}
-    if os.path.isfile(paths["metadata"]):
-        with open(paths["metadata"]) as file:
-            metadata = json.load(file)
-    trained_env = metadata.get("env_id")
-    env_id = SCENARIOS[args.env] if args.env else trained_env
-    if env_id is None:
-        sys.exit(
-            f"error: {paths['metadata']!r} not found, so the scenario is unknown: pass --env multilane or --env intersection"
-        )
-    if trained_env and env_id != trained_env and not args.force:
-        sys.exit(
-            f"error: the model was trained on {trained_env} (per {paths['metadata']}), not {env_id}: "
-            f"leave out --env, or add --force to evaluate it on another scenario"
-        )
-    density = args.density or metadata.get("density", "normal")
-    config = {**metadata.get("config", {}), **(args.config or {})}
-    env = gym.make(env_id, density=density, config=config)
-
-    algo_class = load_algorithm(args.algo or metadata.get("algo", "dacerf"))
-    try:
-        model = algo_class.load(paths["model"], device="cpu")
-    except Exception as error:  # SB3 raises various errors for a file of another class or a corrupt file
-        sys.exit(f"error: cannot load {paths['model']!r} as {algo_class.__name__} ({error}): check --algo (dacerf or sac)")
-    for name in ("observation_space", "action_space"):
-        if getattr(model, name).shape != getattr(env, name).shape:
-            sys.exit(
-                f"error: the model's {name} has shape {getattr(model, name).shape}, {env_id} with this config has "
-                f"{getattr(env, name).shape}: evaluate on the scenario and config the model was trained with"
-            )
-
-    vec_normalize = None
-    stats = args.vec_normalize or (paths["vec_normalize"] if os.path.isfile(paths["vec_normalize"]) else None)
-    if args.vec_normalize and not os.path.isfile(args.vec_normalize):
-        sys.exit(f"error: no VecNormalize statistics file {args.vec_normalize!r}: pass the .pkl saved with the model")
-    if stats:
-        from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
-
-        vec_normalize = VecNormalize.load(stats, DummyVecEnv([lambda: gym.make(env_id, density=density, config=config)]))
-        vec_normalize.training = False
-        if vec_normalize.observation_space.shape != env.observation_space.shape:
-            sys.exit(f"error: the statistics in {stats!r} are for observations of another shape: pass the model's own .pkl")
+    driver = load_driver(args.model, args.env, args.algo, args.vec_normalize, args.density, args.config, args.force)
     print(
-        f"{algo_class.__name__} from {paths['model']}"
-        + (f", observations normalised with {stats}" if stats else "")
-        + f"; {env_id} ({density}), seeds {args.seed}-{args.seed + args.episodes - 1}, deterministic actions"
+        f"{type(driver.model).__name__} from {driver.path}"
+        + (f", observations normalised with {driver.stats_path}" if driver.stats_path else "")
+        + f"; {driver.env_id} ({driver.density}), seeds {args.seed}-{args.seed + args.episodes - 1}, deterministic actions"
     )
-    results = evaluate(model, env, args.episodes, args.seed, vec_normalize)
-    print(format_results(env_id, results, args.episodes))
+    results = evaluate(driver.model, driver.env, args.episodes, args.seed, driver.vec_normalize)
+    print(format_results(driver.env_id, results, args.episodes))
     return results
 
 

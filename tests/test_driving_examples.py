@@ -1,22 +1,30 @@
-"""Tests of the driving examples: training with progress, saving, resuming, and evaluating a saved model."""
+"""
+Tests of the driving examples: training with progress, saving, resuming, evaluating a saved model, exporting a
+learning_curves checkpoint to that format (benchmarks/export_driver.py) and rendering a trained driver.
+"""
 
 import contextlib
 import importlib.util
 import io
 import json
 import os
+import sys
+import zipfile
 
 import numpy as np
 import pytest
 
 pytest.importorskip("highway_env")
 
-EXAMPLES = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples")
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+EXAMPLES = os.path.join(ROOT, "examples")
+BENCHMARKS = os.path.join(ROOT, "benchmarks")
 
 
-def load_example(name: str):
-    spec = importlib.util.spec_from_file_location(name, os.path.join(EXAMPLES, f"{name}.py"))
+def load_example(name: str, folder: str = EXAMPLES):
+    spec = importlib.util.spec_from_file_location(name, os.path.join(folder, f"{name}.py"))
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
 
@@ -120,3 +128,137 @@ def test_evaluate_a_dacerf_model_without_metadata(tmp_path, capsys):
     args = [str(tmp_path / "driver.zip"), "--env", "intersection", "--vec-normalize", str(tmp_path / "stats.pkl")]
     results = evaluate.main([*args, "--config", json.dumps(SHORT), "--episodes", "1"])
     assert "DACERF from" in capsys.readouterr().out and np.isfinite(results["tar"])
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    """
+    A learning_curves checkpoint (benchmarks/learning_curves.py's save_checkpoint) of a DACERF driver trained for
+    100 steps with observation normalisation, in the folder layout <out>/checkpoints/<env>/<variant>-seed<N>.
+    """
+    import gymnasium as gym
+    import torch
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from sb3_dacerf import DACERF
+
+    torch.set_num_threads(1)
+    learning_curves = load_example("learning_curves", BENCHMARKS)
+    env = VecNormalize(DummyVecEnv([lambda: gym.make("DACERF-Multilane-v0", config=SHORT)]), norm_reward=False)
+    model = DACERF("MlpPolicy", env, learning_starts=50, batch_size=32, buffer_size=1_000, langevin_steps=2, seed=0)
+    model.learn(100)
+    out = tmp_path_factory.mktemp("results")
+    folder = learning_curves.checkpoint_dir(out, "DACERF-Multilane-v0", "dacerf", 0)
+    learning_curves.save_checkpoint(model, folder, [], 1.0)
+    return folder, model, env
+
+
+@pytest.fixture(scope="module")
+def exported(checkpoint, tmp_path_factory):
+    export = load_example("export_driver", BENCHMARKS)
+    stem = str(tmp_path_factory.mktemp("shipped") / "dacerf_multilane")
+    export.main([str(checkpoint[0]), stem])
+    return stem
+
+
+def test_export_writes_the_files_evaluate_driving_reads(checkpoint, exported, tmp_path, capsys):
+    from sb3_dacerf import DACERF
+
+    folder, model, env = checkpoint
+    with open(exported + ".json") as file:
+        assert json.load(file) == {"env_id": "DACERF-Multilane-v0", "density": "normal", "config": SHORT, "algo": "dacerf"}
+    # No replay buffer, no optimizer moments: the policy and the optimizers' settings only
+    with zipfile.ZipFile(exported + ".zip") as archive:
+        assert "replay_buffer.pkl" not in archive.namelist()
+    loaded = DACERF.load(exported + ".zip", device="cpu")
+    for optimizer in (loaded.actor.optimizer, loaded.critic.optimizer, loaded.ent_coef_optimizer):
+        assert len(optimizer.state) == 0 and optimizer.param_groups[0]["lr"] == model.learning_rate
+    obs = np.random.default_rng(0).normal(size=(4, *model.observation_space.shape)).astype(np.float32)
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    export = load_example("export_driver", BENCHMARKS)
+    export.main([str(folder), str(tmp_path / "with_optimizer"), "--keep-optimizer"])
+    assert os.path.getsize(exported + ".zip") < os.path.getsize(tmp_path / "with_optimizer.zip")
+    assert len(DACERF.load(tmp_path / "with_optimizer.zip", device="cpu").actor.optimizer.state) > 0
+
+    evaluate = load_example("evaluate_driving")
+    capsys.readouterr()
+    results = evaluate.main([exported, "--episodes", "1"])
+    assert "observations normalised with" in capsys.readouterr().out and np.isfinite(results["tar"])
+    with pytest.raises(SystemExit, match=r"cannot load .* as SAC \(it holds a DACERFPolicy\): check --algo"):
+        evaluate.main([exported, "--algo", "sac"])
+    stats = evaluate.load_driver(exported).vec_normalize
+    assert not stats.training
+    np.testing.assert_array_equal(stats.obs_rms.mean, env.obs_rms.mean)
+
+
+def test_export_errors_name_the_problem(checkpoint, tmp_path):
+    import gymnasium as gym
+    from stable_baselines3 import SAC
+
+    from sb3_dacerf import DACER
+
+    export = load_example("export_driver", BENCHMARKS)
+    folder = checkpoint[0]
+    with pytest.raises(SystemExit, match=r"is not a folder: pass a run's folder <out>/checkpoints/<env>/<variant>-seed<N>"):
+        export.main([str(tmp_path / "missing"), str(tmp_path / "model")])
+    # the env's folder, one level above the runs: the runs below are named
+    with pytest.raises(SystemExit, match=r"is not a learning_curves checkpoint \(no model.zip or env.pkl\).*dacerf-seed0"):
+        export.main([str(folder.parent), str(tmp_path / "model")])
+    with pytest.raises(SystemExit, match=r"model.zip holds a dacerf model, not sac: leave out --algo"):
+        export.main([str(folder), str(tmp_path / "model"), "--algo", "sac"])
+    with pytest.raises(SystemExit, match=r"gym.make keyword arguments \['render'\].*density and config only"):
+        export.main([str(folder), str(tmp_path / "model"), "--env-kwargs", '{"render": 1}'])
+    with pytest.raises(SystemExit, match=r"observation shape is \(93,\), DACERF-Multilane-v0 with .* has \(87,\)"):
+        export.main([str(folder), str(tmp_path / "model"), "--env-kwargs", '{"config": {"surrounding_vehicles": 7}}'])
+    assert not os.path.exists(tmp_path / "model.zip")  # nothing written
+    # runs of another environment or of an algorithm evaluate_driving.py does not load
+    learning_curves = load_example("learning_curves", BENCHMARKS)
+    pendulum = learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", "sac", 0)
+    model = SAC("MlpPolicy", gym.make("Pendulum-v1"), buffer_size=100, policy_kwargs=dict(net_arch=[8]))
+    learning_curves.save_checkpoint(model, pendulum, [], 0.0)
+    with pytest.raises(SystemExit, match=r"a run of 'Pendulum-v1', not a driving scenario"):
+        export.main([str(pendulum), str(tmp_path / "model")])
+    dacer = learning_curves.checkpoint_dir(tmp_path, "DACERF-Multilane-v0", "dacer", 0)
+    env = gym.make("DACERF-Multilane-v0", config=SHORT)
+    learning_curves.save_checkpoint(DACER("MlpPolicy", env, buffer_size=100, policy_kwargs=dict(net_arch=[8])), dacer, [], 0.0)
+    with pytest.raises(SystemExit, match=r"is a dacer run: evaluate_driving.py loads dacerf and sac models only"):
+        export.main([str(dacer), str(tmp_path / "model")])
+
+
+def test_render_a_trained_driver(exported, tmp_path, capsys):
+    from PIL import Image
+
+    render = load_example("render_driving")
+    out = str(tmp_path / "frames")
+    [result] = render.main(["--model", exported, "--out-dir", out, "--frames", "3", "--seed", "10001"])
+    printed = capsys.readouterr().out
+    assert "DACERF from" in printed and "observations normalised with" in printed
+    assert f"DACERF-Multilane-v0: seed 10001, {result['steps']} steps, {result['outcome']}" in printed
+    assert result["strip"] == os.path.join(out, "dacerf_multilane.png") and result["gif"].endswith("dacerf_multilane.gif")
+    with Image.open(result["gif"]) as gif:
+        assert gif.n_frames == result["gif_frames"] > 1 and gif.size == (600, 150)
+    strip = np.asarray(Image.open(result["strip"]).convert("RGB"))
+    assert strip.shape == (150, 3 * 600, 3)
+    # the overlays: the reference path and, in the last frame, the path driven so far
+    colors = {tuple(c) for c in strip.reshape(-1, 3)}
+    assert render.REFERENCE_COLOR in colors and render.TRACE_COLOR in colors
+    # the same episode as evaluate_driving.py's with that seed
+    evaluate = load_example("evaluate_driving")
+    results = evaluate.main([exported, "--episodes", "1", "--seed", "10001"])
+    assert results["episode_length"] == result["steps"]
+    assert (result["outcome"] == "arrival") == bool(results["arrival_rate"])
+    assert ("collision" in result["outcome"]) == bool(results["collision_rate"])
+    assert ("off-road" in result["outcome"]) == bool(results["off_road_rate"])
+    # without overlays: highway-env's frames as they are
+    [plain] = render.main(["--model", exported, "--out-dir", out, "--frames", "2", "--seed", "10001", "--no-overlays"])
+    strip = np.asarray(Image.open(plain["strip"]).convert("RGB"))
+    assert strip.shape == (150, 2 * 600, 3) and render.TRACE_COLOR not in {tuple(c) for c in strip.reshape(-1, 3)}
+
+
+def test_render_errors_name_the_problem(tmp_path, capsys):
+    render = load_example("render_driving")
+    with pytest.raises(SystemExit, match=r"no model file .*missing.zip"):
+        render.main(["--model", str(tmp_path / "missing"), "--out-dir", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        render.main(["--algo", "sac", "--out-dir", str(tmp_path)])
+    assert "--algo and --config apply to --model" in capsys.readouterr().err
