@@ -171,6 +171,22 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
     return model, state["rows"], state["wall_seconds"]
 
 
+def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> Any:
+    """A fresh model of one variant on its training environment (VecNormalize'd with ``job["vec_normalize"]``)."""
+    import gymnasium as gym
+    from stable_baselines3.common.noise import NormalActionNoise
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    env = DummyVecEnv([lambda: gym.make(job["env"], **job["env_kwargs"])])
+    if job["vec_normalize"]:
+        env = VecNormalize(env, norm_obs=True, norm_reward=False)
+    kwargs = dict(kwargs)
+    if "action_noise_std" in kwargs:
+        dim = env.action_space.shape[0]
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
+    return algorithm("MlpPolicy", env, seed=job["seed"], device=job["device"], **kwargs)
+
+
 def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     """
     Train one variant with one seed; return one row per evaluation (read back if the run already finished).
@@ -187,8 +203,6 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     import pandas as pd
     import torch as th
     from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.noise import NormalActionNoise
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     import sb3_dacerf  # noqa: F401  (registers the package's environment ids)
     from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
@@ -209,13 +223,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
         model, rows, elapsed = load_checkpoint(algorithm, folder, job["device"])
         print(f"{folder}: resumed at {model.num_timesteps} steps", flush=True)
     else:
-        env = DummyVecEnv([lambda: gym.make(job["env"], **job["env_kwargs"])])
-        if job["vec_normalize"]:
-            env = VecNormalize(env, norm_obs=True, norm_reward=False)
-        if "action_noise_std" in kwargs:
-            dim = env.action_space.shape[0]
-            kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
-        model = algorithm("MlpPolicy", env, seed=job["seed"], device=job["device"], **kwargs)
+        model = new_model(job, algorithm, kwargs)
     resumed_at = model.num_timesteps
     start = time.perf_counter() - elapsed
 
@@ -273,6 +281,9 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
                 save_checkpoint(self.model, folder, rows, time.perf_counter() - start)
 
     model.learn(job["timesteps"] - model.num_timesteps, callback=EvaluateAndCheckpoint(), reset_num_timesteps=resumed_at == 0)
+    if job["checkpoint_freq"] and model.num_timesteps > resumed_at:
+        # The finished model, the one the last evaluation describes (benchmarks/export_driver.py ships it)
+        save_checkpoint(model, folder, rows, time.perf_counter() - start)
     return rows
 
 

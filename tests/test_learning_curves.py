@@ -39,10 +39,13 @@ def job(out: Path, variant: str, timesteps: int, **overrides) -> dict:
 @pytest.mark.parametrize("variant", ["dacerf", "sac"])
 def test_resumed_run_matches_uninterrupted_run(tmp_path, learning_curves, variant):
     straight = learning_curves.run_one(job(tmp_path / "straight", variant, 300))
-    # A run that stops at 200 steps (its last checkpoint is at 100), then is asked for 300: it resumes from 100
+    # A run that stops at 200 steps (checkpointed at 100 and at its end), then is asked for 300: it resumes from 200
     first = learning_curves.run_one(job(tmp_path / "resumed", variant, 200))
     folder = learning_curves.checkpoint_dir(tmp_path / "resumed", "Pendulum-v1", variant, 3)
     assert (folder / "state.pkl").exists() and (folder / "replay_buffer.npz").exists()
+    # The checkpoint of a finished run holds the finished model, the one its last evaluation describes
+    algorithm = learning_curves.algorithm_class(learning_curves.VARIANTS[variant][0])
+    assert learning_curves.load_checkpoint(algorithm, folder, "cpu")[0].num_timesteps == 200
     resumed = learning_curves.run_one(job(tmp_path / "resumed", variant, 300))
     returns = [row["mean_return"] for row in straight]
     assert [row["timesteps"] for row in resumed] == [100, 200, 300]
