@@ -4,6 +4,7 @@ collision and off-road rates and mean episode length over N seeded, deterministi
 
     python examples/evaluate_driving.py driving_multilane.zip --episodes 20
     python examples/evaluate_driving.py model.zip --env intersection --algo sac --vec-normalize stats.pkl
+    python examples/evaluate_driving.py --scripted --env multilane --episodes 50   # the scripted reference driver
 
 A model saved by ``examples/train_driving.py --save NAME`` comes with ``NAME_<scenario>.json`` (env id, density,
 config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario>_vecnormalize.pkl``: both are
@@ -68,9 +69,11 @@ def evaluate(model, env: gym.Env, n_episodes: int, seed: int, vec_normalize=None
     :param n_episodes: number of episodes
     :param seed: seed of the first episode, the next ones use the following seeds
     :param vec_normalize: the ``VecNormalize`` whose observation statistics the model was trained with, if any
-    :return: TAR and its spread, arrival / collision / off-road rates and mean episode length
+    :return: TAR and its spread, arrival / collision / off-road rates, mean episode length, and the mean absolute
+        distance to the reference path [m] and speed error [m/s] over all steps
     """
     returns, arrivals, collisions, off_road, lengths = [], [], [], [], []
+    lateral_errors, speed_errors = [], []  # per step, over all episodes
     for episode in range(n_episodes):
         obs, _ = env.reset(seed=seed + episode)
         done, total, length, info = False, 0.0, 0, {}
@@ -79,6 +82,8 @@ def evaluate(model, env: gym.Env, n_episodes: int, seed: int, vec_normalize=None
             action, _ = model.predict(policy_obs, deterministic=True)
             obs, reward, terminated, truncated, info = env.step(action)
             total, length, done = total + float(reward), length + 1, terminated or truncated
+            lateral_errors.append(abs(info["lateral_error"]))
+            speed_errors.append(abs(info["speed"] - info["reference_speed"]))
         returns.append(total)
         arrivals.append(info["is_success"])
         collisions.append(info["collision"])
@@ -91,6 +96,8 @@ def evaluate(model, env: gym.Env, n_episodes: int, seed: int, vec_normalize=None
         "collision_rate": float(np.mean(collisions)),
         "off_road_rate": float(np.mean(off_road)),
         "episode_length": float(np.mean(lengths)),
+        "lateral_error": float(np.mean(lateral_errors)),
+        "speed_error": float(np.mean(speed_errors)),
     }
 
 
@@ -98,8 +105,22 @@ def format_results(env_id: str, results: dict[str, float], n_episodes: int) -> s
     return (
         f"{env_id}: over {n_episodes} episodes TAR {results['tar']:.1f} +/- {results['tar_std']:.1f}, "
         f"arrival rate {results['arrival_rate']:.0%}, collision rate {results['collision_rate']:.0%}, "
-        f"off-road rate {results['off_road_rate']:.0%}, mean length {results['episode_length']:.0f} steps"
+        f"off-road rate {results['off_road_rate']:.0%}, mean length {results['episode_length']:.0f} steps, "
+        f"mean distance to the reference path {results['lateral_error']:.2f} m, "
+        f"mean speed error {results['speed_error']:.2f} m/s"
     )
+
+
+class ScriptedModel:
+    """:class:`~sb3_dacerf.envs.driving.scripted.ScriptedDriver` behind SB3's ``predict``, as a reference to compare with."""
+
+    def __init__(self, env: gym.Env) -> None:
+        from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+        self.driver = ScriptedDriver(env)
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        return self.driver(obs), None
 
 
 def load_algorithm(algo: str):
@@ -197,7 +218,10 @@ def load_driver(
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("model", help="the model .zip (the .zip suffix may be left out)")
+    parser.add_argument("model", nargs="?", help="the model .zip (the .zip suffix may be left out)")
+    parser.add_argument(
+        "--scripted", action="store_true", help="evaluate the scripted reference driver instead of a model (needs --env)"
+    )
     parser.add_argument("--env", choices=list(SCENARIOS), help="scenario (default: the one the model was trained on)")
     parser.add_argument("--algo", choices=["dacerf", "sac"], help="model class (default: from the metadata, else dacerf)")
     parser.add_argument("--vec-normalize", help="VecNormalize statistics .pkl (default: the one saved beside the model)")
@@ -208,6 +232,17 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     parser.add_argument("--force", action="store_true", help="evaluate on another scenario than the model was trained on")
     args = parser.parse_args(argv)
 
+    if args.scripted:
+        if args.model or not args.env:
+            parser.error("--scripted evaluates the scripted driver: pass --env multilane or --env intersection and no model")
+        env_id, density = SCENARIOS[args.env], args.density or "normal"
+        env = gym.make(env_id, density=density, config=args.config or {})
+        print(f"ScriptedDriver; {env_id} ({density}), seeds {args.seed}-{args.seed + args.episodes - 1}")
+        results = evaluate(ScriptedModel(env), env, args.episodes, args.seed)
+        print(format_results(env_id, results, args.episodes))
+        return results
+    if not args.model:
+        parser.error("pass a model .zip to evaluate (or --scripted --env SCENARIO for the scripted driver)")
     driver = load_driver(args.model, args.env, args.algo, args.vec_normalize, args.density, args.config, args.force)
     print(
         f"{type(driver.model).__name__} from {driver.path}"

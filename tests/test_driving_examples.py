@@ -72,12 +72,39 @@ def test_evaluate_prints_the_paper_metrics(trained, capsys):
     out = capsys.readouterr().out
     assert "observations normalised with" in out and "_vecnormalize.pkl" in out
     assert "TAR" in out and "arrival rate" in out and "collision rate" in out and "off-road rate" in out
-    assert set(results) == {"tar", "tar_std", "arrival_rate", "collision_rate", "off_road_rate", "episode_length"}
+    assert set(results) == {
+        "tar",
+        "tar_std",
+        "arrival_rate",
+        "collision_rate",
+        "off_road_rate",
+        "episode_length",
+        "lateral_error",
+        "speed_error",
+    }
     assert 1 <= results["episode_length"] <= 30 and np.isfinite(results["tar"])
+    assert results["lateral_error"] >= 0 and results["speed_error"] >= 0 and "distance to the reference path" in out
     for key in ("arrival_rate", "collision_rate", "off_road_rate"):
         assert results[key] in (0.0, 0.5, 1.0)
     # seeded: the same episodes again
     assert evaluate.main([trained, "--episodes", "2"]) == results
+
+
+def test_evaluate_the_scripted_driver(capsys):
+    evaluate = load_example("evaluate_driving")
+    args = ["--scripted", "--env", "multilane", "--episodes", "2", "--config", json.dumps(SHORT)]
+    results = evaluate.main(args)
+    out = capsys.readouterr().out
+    assert out.startswith("ScriptedDriver; DACERF-Multilane-v0 (normal), seeds 10000-10001")
+    # the reference tracker stays close to its path: under the lane width on average
+    assert results["episode_length"] >= 1 and 0 <= results["lateral_error"] < 4.0
+    assert evaluate.main(args) == results
+    with pytest.raises(SystemExit):
+        evaluate.main(["--scripted"])
+    assert "--scripted evaluates the scripted driver" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        evaluate.main([])
+    assert "pass a model .zip to evaluate" in capsys.readouterr().err
 
 
 def test_evaluate_errors_name_the_problem(trained, tmp_path):

@@ -312,10 +312,12 @@ class PaperDrivingMixin(_HighwayEnv):
         return bool(self.vehicle.crashed or self._current_scene().road_clearance < 0)
 
     def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
-        crashed, off_road = bool(self.vehicle.crashed), bool(self._current_scene().road_clearance < 0)
+        scene = self._current_scene()
+        crashed, off_road = bool(self.vehicle.crashed), bool(scene.road_clearance < 0)
         return {
             "speed": float(self.vehicle.speed),
             "reference_speed": float(self.reference_speed),
+            "lateral_error": float(scene.lateral_error),
             "crashed": crashed,
             "collision": crashed,
             "off_road": off_road,
