@@ -4,6 +4,7 @@ learning_curves checkpoint to that format (benchmarks/export_driver.py) and rend
 """
 
 import contextlib
+import glob
 import importlib.util
 import io
 import json
@@ -105,6 +106,17 @@ def test_evaluate_the_scripted_driver(capsys):
     with pytest.raises(SystemExit):
         evaluate.main([])
     assert "pass a model .zip to evaluate" in capsys.readouterr().err
+
+
+def test_shipped_drivers_load_and_drive(capsys):
+    # every driver in examples/models loads with its metadata and statistics and drives a short seeded episode
+    evaluate = load_example("evaluate_driving")
+    stems = sorted(path[: -len(".json")] for path in glob.glob(os.path.join(EXAMPLES, "models", "*.json")))
+    assert stems, "examples/models holds no driver"
+    for stem in stems:
+        results = evaluate.main([stem, "--episodes", "1", "--config", json.dumps(SHORT)])
+        assert results["episode_length"] >= 1 and np.isfinite(results["tar"])
+        assert "observations normalised with" in capsys.readouterr().out
 
 
 def test_evaluate_errors_name_the_problem(trained, tmp_path):
