@@ -472,14 +472,17 @@ PINNED_EPISODES_PATH = os.path.join(os.path.dirname(__file__), "data", "driving_
 # The severe-event penalty is set explicitly (the paper's constant): the pins are about determinism, and the default
 # penalty's own tests are test_dynamic_severe_penalty and the collision / off-road tests.
 PINNED_PENALTY = {"collision_penalty": 200.0}
+# Likewise the intersection keeps the wrecks of traffic-only crashes (highway-env's behaviour, under which the
+# intersection pins were recorded); clear_crashed_traffic has its own test.
+PINNED_WRECKS = {"clear_crashed_traffic": False}
 PINNED_EPISODES = [
     # (env id, density, config overrides, seed, action pattern)
     ("DACERF-Multilane-v0", "normal", {"duration": 15, **PINNED_PENALTY}, 0, "zero"),
     ("DACERF-Multilane-v0", "dense", {"duration": 15, **PINNED_PENALTY}, 1, "random"),
     ("DACERF-Multilane-v0", "sparse", {"duration": 15, "reference_lane": "left", **PINNED_PENALTY}, 2, "wave"),
-    ("DACERF-Intersection-v0", "normal", {"duration": 20, **PINNED_PENALTY}, 0, "zero"),
-    ("DACERF-Intersection-v0", "dense", {"duration": 20, **PINNED_PENALTY}, 3, "random"),
-    ("DACERF-Intersection-v0", "sparse", {"duration": 20, "routes": ["left"], **PINNED_PENALTY}, 4, "wave"),
+    ("DACERF-Intersection-v0", "normal", {"duration": 20, **PINNED_PENALTY, **PINNED_WRECKS}, 0, "zero"),
+    ("DACERF-Intersection-v0", "dense", {"duration": 20, **PINNED_PENALTY, **PINNED_WRECKS}, 3, "random"),
+    ("DACERF-Intersection-v0", "sparse", {"duration": 20, "routes": ["left"], **PINNED_PENALTY, **PINNED_WRECKS}, 4, "wave"),
 ]
 PINNED_OBS_EVERY = 25
 
@@ -522,6 +525,22 @@ def record_episode(env_id: str, density: str, config: dict, seed: int, pattern: 
             terms[name] += value
     record["reward_terms"] = terms
     return record
+
+
+@pytest.mark.parametrize("clear", [True, False])
+def test_crashed_traffic_is_cleared_from_the_intersection(clear):
+    env = gym.make("DACERF-Intersection-v0", config={"clear_crashed_traffic": clear})
+    env.reset(seed=0)
+    unwrapped = env.unwrapped
+    assert unwrapped.config["clear_crashed_traffic"] is clear
+    traffic = [v for v in unwrapped.road.vehicles if v is not unwrapped.vehicle]
+    wrecks = traffic[:2]
+    for vehicle in wrecks:
+        vehicle.crashed = True
+    env.step(np.zeros(2, dtype=np.float32))
+    remaining = [any(v is wreck for v in unwrapped.road.vehicles) for wreck in wrecks]
+    assert remaining == [not clear, not clear]
+    assert unwrapped.vehicle in unwrapped.road.vehicles
 
 
 def test_pinned_episodes_are_unchanged():

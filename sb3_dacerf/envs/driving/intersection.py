@@ -29,7 +29,7 @@ from highway_env.envs.intersection_env import IntersectionEnv as HighwayIntersec
 from highway_env.road.lane import AbstractLane
 
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
-from sb3_dacerf.envs.driving.common.config import Rule, interval, number
+from sb3_dacerf.envs.driving.common.config import Rule, boolean, interval, number
 
 ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
 """Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
@@ -104,6 +104,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         "spawn_probability": number(0.0, 1.0),
         "routes": _routes_rule,
         "reference_speed_ranges": _speed_ranges_rule,
+        "clear_crashed_traffic": boolean(),
     }
     EXIT_DISTANCE = 25.0
     """Distance driven into an exit lane that ends the episode [m] (highway-env's ``has_arrived``)."""
@@ -121,6 +122,9 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 "reference_speed_ranges": {"straight": [6.0, 9.0], "left": [4.0, 7.0], "right": [3.0, 5.0], "u_turn": [3.0, 4.5]},
                 "position_scale": 25.0,
                 "speed_scale": 10.0,
+                # Remove traffic vehicles that crashed into each other (highway-env's junction behaviour fails now
+                # and then) instead of leaving the wrecks in the junction; False: highway-env's behaviour.
+                "clear_crashed_traffic": True,
             }
         )
         return config
@@ -196,6 +200,12 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         self._clear_vehicles()
         self._spawn_vehicle(spawn_probability=self.config["spawn_probability"])
         return result
+
+    def _clear_vehicles(self) -> None:
+        """highway-env's clean-up of the vehicles that left, and wrecks of traffic-only crashes (``clear_crashed_traffic``)."""
+        super()._clear_vehicles()
+        if self.config["clear_crashed_traffic"] and not self.vehicle.crashed:
+            self.road.vehicles = [v for v in self.road.vehicles if v in self.controlled_vehicles or not v.crashed]
 
     def _has_exited(self) -> bool:
         return self.has_arrived(self.vehicle, exit_distance=self.EXIT_DISTANCE)
