@@ -22,6 +22,8 @@ episodes are reported as well.
 import argparse
 import json
 import multiprocessing as mp
+import signal
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -366,7 +368,7 @@ def main() -> None:
     parser.add_argument("--timesteps", type=int, default=20_000)
     parser.add_argument("--eval-freq", type=int, default=2_000)
     parser.add_argument("--eval-episodes", type=int, default=5)
-    parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
+    parser.add_argument("--workers", type=int, default=2, help="parallel training processes (1: in this process)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument(
         "--env-kwargs",
@@ -393,6 +395,8 @@ def main() -> None:
         "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
     )
     args = parser.parse_args()
+    if args.workers < 1:
+        parser.error(f"--workers must be at least 1, got {args.workers}")
     unknown = [variant for variant in args.variants if variant not in VARIANTS]
     if unknown and not args.report_only:
         parser.error(f"unknown variants {unknown}: choose from {', '.join(VARIANTS)} (or use --report-only for older runs)")
@@ -428,8 +432,15 @@ def main() -> None:
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants
     ]
-    with mp.get_context("spawn").Pool(args.workers) as pool:
-        pool.map(run_one, jobs, chunksize=1)
+    if args.workers == 1:
+        for job in jobs:  # in this process: stopping it stops the training, nothing is left running
+            run_one(job)
+    else:
+        # A plain `kill` of this process ends the pool's workers too (SystemExit leaves the `with`, which terminates
+        # them) instead of leaving them training on as orphans.
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+        with mp.get_context("spawn").Pool(args.workers) as pool:
+            pool.map(run_one, jobs, chunksize=1)
     # The summary covers every run of this environment under --out, not only this command's, so a comparison
     # run in pieces (one variant or seed range at a time) always ends with a complete <env>.csv and plot.
     trained = list(dict.fromkeys(args.variants))
