@@ -23,6 +23,7 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,9 +50,23 @@ class Driver:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """The deterministic action for a raw (not normalised) observation."""
-        if self.vec_normalize is not None:
-            obs = self.vec_normalize.normalize_obs(obs)
-        return self.model.predict(obs, deterministic=True)[0]
+        return policy_act(self.model, self.vec_normalize)(obs)
+
+
+def policy_act(model, vec_normalize=None) -> Callable[[np.ndarray], np.ndarray]:
+    """
+    The deterministic driving function of an SB3 model: raw observation in, action out.
+
+    :param model: a trained SB3 model
+    :param vec_normalize: the ``VecNormalize`` whose observation statistics the model was trained with, if any
+    """
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        if vec_normalize is not None:
+            obs = vec_normalize.normalize_obs(obs)
+        return model.predict(obs, deterministic=True)[0]
+
+    return act
 
 
 def model_paths(model_path: str) -> dict[str, str]:
@@ -60,67 +75,70 @@ def model_paths(model_path: str) -> dict[str, str]:
     return {"model": stem + ".zip", "metadata": stem + ".json", "vec_normalize": stem + "_vecnormalize.pkl"}
 
 
-def evaluate(model, env: gym.Env, n_episodes: int, seed: int, vec_normalize=None) -> dict[str, float]:
+def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: int, seed: int) -> dict[str, Any]:
     """
-    Run deterministic evaluation episodes.
+    Run evaluation episodes.
 
-    :param model: a trained SB3 model
+    :param act: the driver: raw observation in, action out (``Driver.act``, ``policy_act(model)``, a
+        :class:`~sb3_dacerf.envs.driving.scripted.ScriptedDriver`)
     :param env: the evaluation environment (not normalised)
     :param n_episodes: number of episodes
     :param seed: seed of the first episode, the next ones use the following seeds
-    :param vec_normalize: the ``VecNormalize`` whose observation statistics the model was trained with, if any
     :return: TAR and its spread, arrival / collision / off-road rates, mean episode length, and the mean absolute
-        distance to the reference path [m] and speed error [m/s] over all steps
+        distance to the reference path [m] and speed error [m/s] over all steps; at the intersection also
+        ``by_route``: episodes and rates for each route drawn (straight, left, right, U-turn)
     """
-    returns, arrivals, collisions, off_road, lengths = [], [], [], [], []
+    returns, outcomes, lengths, routes = [], [], [], []
     lateral_errors, speed_errors = [], []  # per step, over all episodes
     for episode in range(n_episodes):
-        obs, _ = env.reset(seed=seed + episode)
-        done, total, length, info = False, 0.0, 0, {}
+        obs, info = env.reset(seed=seed + episode)
+        route = info.get("route")
+        done, total, length = False, 0.0, 0
         while not done:
-            policy_obs = vec_normalize.normalize_obs(obs) if vec_normalize is not None else obs
-            action, _ = model.predict(policy_obs, deterministic=True)
-            obs, reward, terminated, truncated, info = env.step(action)
+            obs, reward, terminated, truncated, info = env.step(act(obs))
             total, length, done = total + float(reward), length + 1, terminated or truncated
             lateral_errors.append(abs(info["lateral_error"]))
             speed_errors.append(abs(info["speed"] - info["reference_speed"]))
         returns.append(total)
-        arrivals.append(info["is_success"])
-        collisions.append(info["collision"])
-        off_road.append(info["off_road"])
+        outcomes.append((info["is_success"], info["collision"], info["off_road"]))
         lengths.append(length)
-    return {
+        routes.append(route)
+    rates = np.asarray(outcomes, dtype=float)
+    results: dict[str, Any] = {
         "tar": float(np.mean(returns)),
         "tar_std": float(np.std(returns)),
-        "arrival_rate": float(np.mean(arrivals)),
-        "collision_rate": float(np.mean(collisions)),
-        "off_road_rate": float(np.mean(off_road)),
+        "arrival_rate": float(rates[:, 0].mean()),
+        "collision_rate": float(rates[:, 1].mean()),
+        "off_road_rate": float(rates[:, 2].mean()),
         "episode_length": float(np.mean(lengths)),
         "lateral_error": float(np.mean(lateral_errors)),
         "speed_error": float(np.mean(speed_errors)),
     }
+    if any(route is not None for route in routes):
+        results["by_route"] = {}
+        for route in sorted(set(routes), key=str):
+            mask = np.array([r == route for r in routes])
+            results["by_route"][route] = {
+                "episodes": int(mask.sum()),
+                "arrival_rate": float(rates[mask, 0].mean()),
+                "collision_rate": float(rates[mask, 1].mean()),
+                "off_road_rate": float(rates[mask, 2].mean()),
+            }
+    return results
 
 
-def format_results(env_id: str, results: dict[str, float], n_episodes: int) -> str:
+def format_results(env_id: str, results: dict[str, Any], n_episodes: int) -> str:
     return (
         f"{env_id}: over {n_episodes} episodes TAR {results['tar']:.1f} +/- {results['tar_std']:.1f}, "
         f"arrival rate {results['arrival_rate']:.0%}, collision rate {results['collision_rate']:.0%}, "
         f"off-road rate {results['off_road_rate']:.0%}, mean length {results['episode_length']:.0f} steps, "
         f"mean distance to the reference path {results['lateral_error']:.2f} m, "
         f"mean speed error {results['speed_error']:.2f} m/s"
+    ) + "".join(
+        f"\n  {route}: {rates['episodes']} episodes, arrival {rates['arrival_rate']:.0%}, "
+        f"collision {rates['collision_rate']:.0%}, off-road {rates['off_road_rate']:.0%}"
+        for route, rates in results.get("by_route", {}).items()
     )
-
-
-class ScriptedModel:
-    """:class:`~sb3_dacerf.envs.driving.scripted.ScriptedDriver` behind SB3's ``predict``, as a reference to compare with."""
-
-    def __init__(self, env: gym.Env) -> None:
-        from sb3_dacerf.envs.driving.scripted import ScriptedDriver
-
-        self.driver = ScriptedDriver(env)
-
-    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
-        return self.driver(obs), None
 
 
 def load_algorithm(algo: str):
@@ -216,7 +234,7 @@ def load_driver(
     return Driver(model, env, env_id, density, config, normalizer, stats, paths["model"])
 
 
-def main(argv: list[str] | None = None) -> dict[str, float]:
+def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("model", nargs="?", help="the model .zip (the .zip suffix may be left out)")
     parser.add_argument(
@@ -238,7 +256,9 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         env_id, density = SCENARIOS[args.env], args.density or "normal"
         env = gym.make(env_id, density=density, config=args.config or {})
         print(f"ScriptedDriver; {env_id} ({density}), seeds {args.seed}-{args.seed + args.episodes - 1}")
-        results = evaluate(ScriptedModel(env), env, args.episodes, args.seed)
+        from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+        results = evaluate(ScriptedDriver(env), env, args.episodes, args.seed)
         print(format_results(env_id, results, args.episodes))
         return results
     if not args.model:
@@ -249,7 +269,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         + (f", observations normalised with {driver.stats_path}" if driver.stats_path else "")
         + f"; {driver.env_id} ({driver.density}), seeds {args.seed}-{args.seed + args.episodes - 1}, deterministic actions"
     )
-    results = evaluate(driver.model, driver.env, args.episodes, args.seed, driver.vec_normalize)
+    results = evaluate(driver.act, driver.env, args.episodes, args.seed)
     print(format_results(driver.env_id, results, args.episodes))
     return results
 

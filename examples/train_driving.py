@@ -41,7 +41,7 @@ import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths
+from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths, policy_act
 
 
 class DrivingProgress(BaseCallback):
@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> None:
             vec_normalize.training = False
         # Evaluation episodes use seeds the training resets did not (training resets are seeded from --seed).
         results = evaluate(
-            model, gym.make(env_id, **env_kwargs), args.eval_episodes, seed=10_000 + args.seed, vec_normalize=vec_normalize
+            policy_act(model, vec_normalize), gym.make(env_id, **env_kwargs), args.eval_episodes, seed=10_000 + args.seed
         )
         print(
             f"trained {model.num_timesteps} steps in total, {train_seconds:.0f} s this run; "

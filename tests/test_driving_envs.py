@@ -213,7 +213,8 @@ def test_highway_success_at_time_limit():
 @pytest.mark.parametrize("route", ["straight", "left", "right", "u_turn"])
 def test_intersection_routes(route):
     env = make("DACERF-Intersection-v0", routes=[route])
-    env.reset(seed=0)
+    _, info = env.reset(seed=0)
+    assert info["route"] == route
     unwrapped = env.unwrapped
     exit_arm = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}[route]
     exit_lane = unwrapped.road.network.get_lane((f"il{exit_arm}", f"o{exit_arm}", 0))
@@ -228,7 +229,7 @@ def test_intersection_routes(route):
     unwrapped.road.vehicles = [ego]
     ego.position, ego.heading = exit_lane.position(30.0, 0.0), exit_lane.heading_at(30.0)
     _, _, terminated, _, info = env.step(np.zeros(2, dtype=np.float32))
-    assert terminated and info["is_success"]
+    assert terminated and info["is_success"] and info["route"] == route
 
 
 def test_intersection_wrong_exit_is_no_success():

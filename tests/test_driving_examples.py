@@ -99,13 +99,27 @@ def test_evaluate_the_scripted_driver(capsys):
     assert out.startswith("ScriptedDriver; DACERF-Multilane-v0 (normal), seeds 10000-10001")
     # the reference tracker stays close to its path: under the lane width on average
     assert results["episode_length"] >= 1 and 0 <= results["lateral_error"] < 4.0
-    assert evaluate.main(args) == results
+    assert evaluate.main(args) == results and "by_route" not in results  # the highway has no routes
     with pytest.raises(SystemExit):
         evaluate.main(["--scripted"])
     assert "--scripted evaluates the scripted driver" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         evaluate.main([])
     assert "pass a model .zip to evaluate" in capsys.readouterr().err
+
+
+def test_evaluate_breaks_the_intersection_down_by_route(capsys):
+    evaluate = load_example("evaluate_driving")
+    results = evaluate.main(["--scripted", "--env", "intersection", "--episodes", "4", "--config", json.dumps(SHORT)])
+    by_route = results["by_route"]
+    assert set(by_route) <= {"straight", "left", "right", "u_turn"}
+    assert sum(rates["episodes"] for rates in by_route.values()) == 4
+    # the overall rates are the episode-weighted means of the routes' rates
+    for key in ("arrival_rate", "collision_rate", "off_road_rate"):
+        weighted = sum(rates["episodes"] * rates[key] for rates in by_route.values()) / 4
+        assert weighted == pytest.approx(results[key])
+    out = capsys.readouterr().out
+    assert all(f"  {route}: {rates['episodes']} episodes, arrival" in out for route, rates in by_route.items())
 
 
 def test_shipped_drivers_load_and_drive(capsys):

@@ -17,7 +17,8 @@ dense 15 / 0.12).
 
 The episode ends on a collision, when the ego's centre leaves the road, or when it has driven
 25 m into any exit lane (``info["is_success"]`` is true only for the route's exit); it is truncated
-after ``duration`` (40 s). Observation scaling: positions / 25 m, speeds / 10 m/s.
+after ``duration`` (40 s). Observation scaling: positions / 25 m, speeds / 10 m/s. ``info["route"]`` names the
+episode's route.
 """
 
 from __future__ import annotations
@@ -206,6 +207,10 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         super()._clear_vehicles()
         if self.config["clear_crashed_traffic"] and not self.vehicle.crashed:
             self.road.vehicles = [v for v in self.road.vehicles if v in self.controlled_vehicles or not v.crashed]
+
+    def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
+        """The common info, plus the episode's ``route`` (``straight``, ``left``, ``right`` or ``u_turn``)."""
+        return {**super()._info(obs, action), "route": self.route}
 
     def _has_exited(self) -> bool:
         return self.has_arrived(self.vehicle, exit_distance=self.EXIT_DISTANCE)
