@@ -43,7 +43,8 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-qscale": ("DACERF", dict(flow_matching_weights="q_scale")),
     "dacerf-td3bc": ("DACERF", dict(flow_matching_weights="td3bc")),
     "dacerf-flowrl": ("DACERF", dict(flow_matching_weights="flowrl")),
-    "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=True))),
+    "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=True))),  # = the defaults (named so in earlier results)
+    "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=False))),  # SB3's MLP critics (0.1.0's)
     "dacerf-delay1": ("DACERF", dict(policy_delay=1)),
     "dacerf-steps3": ("DACERF", dict(n_sampling_steps=3)),
     "dacerf-tau001": ("DACERF", dict(tau=0.001)),

@@ -11,8 +11,10 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import BitFlippingEnv, SimpleMultiObsEnv
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.policies import ContinuousCritic
 
 from sb3_dacerf import DACERF
+from sb3_dacerf.common.policies import LayerNormCritic
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
 
@@ -44,6 +46,26 @@ def test_defaults_and_paper_preset():
     assert model.actor.n_sampling_steps == 1
     assert model.policy.critic.n_critics == 2
     assert model.policy.actor is model.actor and model.policy.critic_target is model.critic_target
+    # LayerNorm critics by default, SB3's MLP critics in the paper preset or on request
+    assert model.policy_kwargs["critic_layer_norm"] is True
+    assert isinstance(model.critic, LayerNormCritic) and isinstance(model.critic_target, LayerNormCritic)
+    assert type(paper.critic) is ContinuousCritic
+    mlp = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=False))
+    assert type(mlp.critic) is ContinuousCritic and type(mlp.critic_target) is ContinuousCritic
+
+
+def test_a_model_saved_without_the_critic_setting_loads_with_mlp_critics(tmp_path):
+    # files written before LayerNorm critics became the default hold MLP critics and no critic_layer_norm key
+    model = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=False), seed=0)
+    del model.policy_kwargs["critic_layer_norm"]
+    model.save(tmp_path / "old")
+    loaded = DACERF.load(tmp_path / "old")
+    assert type(loaded.critic) is ContinuousCritic and "critic_layer_norm" not in loaded.policy_kwargs
+    for name, value in model.policy.state_dict().items():
+        assert th.equal(value, loaded.policy.state_dict()[name]), name
+    # and a model saved now keeps its LayerNorm critics
+    DACERF("MlpPolicy", "Pendulum-v1", seed=0).save(tmp_path / "new")
+    assert isinstance(DACERF.load(tmp_path / "new").critic, LayerNormCritic)
 
 
 def test_policy_delay_updates_the_actor_every_third_critic_update(fast):

@@ -95,7 +95,8 @@ class DACERF(TwinCriticAlgorithm):
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
-        ``dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16))``
+        ``dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16))``; the critics have
+        ``LayerNorm`` after every hidden layer unless it holds ``critic_layer_norm=False`` (SB3's MLP critics)
     :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
         debug messages
     :param seed: Seed for the pseudo random generators
@@ -197,6 +198,10 @@ class DACERF(TwinCriticAlgorithm):
         self._n_actor_updates = 0
         # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
         self.policy_kwargs = merge_policy_kwarg(self.policy_kwargs, "n_sampling_steps", n_sampling_steps, 1, "DACERF")
+        # LayerNorm critics unless policy_kwargs say otherwise (benchmarks/learning.md, "Critic options"). Written into
+        # policy_kwargs, so a saved model records its critics: files saved before this default (no such key) load
+        # with SB3's MLP critics, which they hold.
+        self.policy_kwargs.setdefault("critic_layer_norm", True)
         # torch.compile of the Langevin loop (an option: compiling costs ~30 s at the first update)
         self.compile_langevin = compile_langevin
 
@@ -405,8 +410,8 @@ class DACERF(TwinCriticAlgorithm):
 
 
 #: The paper's own training hyper-parameters (Table "Training hyper-parameters"), for ``DACERF(..., **PAPER_HYPERPARAMETERS)``:
-#: learning rate 1e-4, replay batch 512, RAD, tau 0.001, policy delay 3, no added exploration noise, and 0.1.0's
-#: ``λ_f = mean|Q| · g / mean(g)``.
+#: learning rate 1e-4, replay batch 512, RAD, tau 0.001, policy delay 3, no added exploration noise, 0.1.0's
+#: ``λ_f = mean|Q| · g / mean(g)`` and plain MLP critics.
 PAPER_HYPERPARAMETERS: dict[str, Any] = dict(
     learning_rate=1e-4,
     batch_size=512,
@@ -419,5 +424,5 @@ PAPER_HYPERPARAMETERS: dict[str, Any] = dict(
     n_sampling_steps=1,
     flow_matching_weights="q_scale",
     ent_coef=0.0,
-    policy_kwargs=dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16)),
+    policy_kwargs=dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16), critic_layer_norm=False),
 )
