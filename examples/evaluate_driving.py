@@ -20,6 +20,7 @@ use.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -50,7 +51,14 @@ class Driver:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """The deterministic action for a raw (not normalised) observation."""
-        return policy_act(self.model, self.vec_normalize)(obs)
+        return deterministic_action(self.model, self.vec_normalize, obs)
+
+
+def deterministic_action(model, vec_normalize, obs: np.ndarray) -> np.ndarray:
+    """A model's deterministic action for a raw observation, normalised first with ``vec_normalize`` if not None."""
+    if vec_normalize is not None:
+        obs = vec_normalize.normalize_obs(obs)
+    return model.predict(obs, deterministic=True)[0]
 
 
 def policy_act(model, vec_normalize=None) -> Callable[[np.ndarray], np.ndarray]:
@@ -60,13 +68,7 @@ def policy_act(model, vec_normalize=None) -> Callable[[np.ndarray], np.ndarray]:
     :param model: a trained SB3 model
     :param vec_normalize: the ``VecNormalize`` whose observation statistics the model was trained with, if any
     """
-
-    def act(obs: np.ndarray) -> np.ndarray:
-        if vec_normalize is not None:
-            obs = vec_normalize.normalize_obs(obs)
-        return model.predict(obs, deterministic=True)[0]
-
-    return act
+    return functools.partial(deterministic_action, model, vec_normalize)
 
 
 def model_paths(model_path: str) -> dict[str, str]:
@@ -103,13 +105,16 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
         outcomes.append((info["is_success"], info["collision"], info["off_road"]))
         lengths.append(length)
         routes.append(route)
-    rates = np.asarray(outcomes, dtype=float)
+    outcomes_array = np.asarray(outcomes, dtype=float)
+
+    def rates(episodes: np.ndarray) -> dict[str, float]:
+        arrival, collision, off_road = outcomes_array[episodes].mean(axis=0)
+        return {"arrival_rate": float(arrival), "collision_rate": float(collision), "off_road_rate": float(off_road)}
+
     results: dict[str, Any] = {
         "tar": float(np.mean(returns)),
         "tar_std": float(np.std(returns)),
-        "arrival_rate": float(rates[:, 0].mean()),
-        "collision_rate": float(rates[:, 1].mean()),
-        "off_road_rate": float(rates[:, 2].mean()),
+        **rates(np.ones(n_episodes, dtype=bool)),
         "episode_length": float(np.mean(lengths)),
         "lateral_error": float(np.mean(lateral_errors)),
         "speed_error": float(np.mean(speed_errors)),
@@ -117,13 +122,8 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
     if any(route is not None for route in routes):
         results["by_route"] = {}
         for route in sorted(set(routes), key=str):
-            mask = np.array([r == route for r in routes])
-            results["by_route"][route] = {
-                "episodes": int(mask.sum()),
-                "arrival_rate": float(rates[mask, 0].mean()),
-                "collision_rate": float(rates[mask, 1].mean()),
-                "off_road_rate": float(rates[mask, 2].mean()),
-            }
+            episodes = np.array([r == route for r in routes])
+            results["by_route"][route] = {"episodes": int(episodes.sum()), **rates(episodes)}
     return results
 
 
