@@ -243,6 +243,42 @@ def test_intersection_wrong_exit_is_no_success():
     assert terminated and not info["is_success"]
 
 
+def test_intersection_default_routes_leave_out_the_u_turn():
+    env = make("DACERF-Intersection-v0")
+    routes = {env.reset(seed=seed)[1]["route"] for seed in range(30)}
+    assert routes == {"straight", "left", "right"}
+
+
+@pytest.mark.parametrize("right_of_way", ["first_come", "priority"])
+def test_traffic_yields_to_an_ego_ahead_under_first_come(right_of_way):
+    """A priority-road vehicle about to reach an ego standing in its path yields to it under first_come only."""
+    env = make("DACERF-Intersection-v0", right_of_way=right_of_way)
+    env.reset(seed=0)
+    unwrapped = env.unwrapped
+    road, ego = unwrapped.road, unwrapped.vehicle
+    network = road.network
+    # A traffic vehicle 2 m before the junction on an approach lane of the horizontal (priority) road, at 8 m/s.
+    lane_index = next(
+        index for index in [(f"o{arm}", f"ir{arm}", 0) for arm in range(4)] if network.get_lane(index).priority == 3
+    )
+    lane = network.get_lane(lane_index)
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    traffic = IDMVehicle.make_on_lane(road, lane_index, longitudinal=lane.length - 2.0, speed=8.0)
+    # The ego, crawling across the traffic's path 6 m ahead of it, on its own (minor) approach lane.
+    ego.position = lane.position(lane.length + 4.0, 0.0)
+    ego.heading, ego.speed = lane.heading_at(lane.length) + np.pi / 2, 1.0
+    ego.lane_index = ("ir0", "il2", 0)
+    ego.lane = network.get_lane(ego.lane_index)
+    road.vehicles = [ego, traffic]
+    assert road.is_conflict_possible(ego, traffic)
+    road.enforce_road_rules()
+    if right_of_way == "first_come":
+        assert traffic.is_yielding and traffic.target_speed == 0
+    else:
+        assert not getattr(traffic, "is_yielding", False) and traffic.target_speed > 0
+
+
 def test_density_changes_vehicle_count():
     counts = {}
     for density in ("sparse", "normal", "dense"):
@@ -473,16 +509,18 @@ PINNED_EPISODES_PATH = os.path.join(os.path.dirname(__file__), "data", "driving_
 # The severe-event penalty is set explicitly (the paper's constant): the pins are about determinism, and the default
 # penalty's own tests are test_dynamic_severe_penalty and the collision / off-road tests.
 PINNED_PENALTY = {"collision_penalty": 200.0}
-# Likewise the intersection keeps the wrecks of traffic-only crashes (highway-env's behaviour, under which the
-# intersection pins were recorded); clear_crashed_traffic has its own test.
-PINNED_WRECKS = {"clear_crashed_traffic": False}
+# Likewise the intersection keeps highway-env's behaviour under which its pins were recorded: the wrecks of
+# traffic-only crashes, lane priorities for the ego too, and routes drawn among all four; clear_crashed_traffic,
+# right_of_way and the default routes have their own tests.
+PINNED_WRECKS = {"clear_crashed_traffic": False, "right_of_way": "priority"}
+ALL_ROUTES = {"routes": ["straight", "left", "right", "u_turn"]}
 PINNED_EPISODES = [
     # (env id, density, config overrides, seed, action pattern)
     ("DACERF-Multilane-v0", "normal", {"duration": 15, **PINNED_PENALTY}, 0, "zero"),
     ("DACERF-Multilane-v0", "dense", {"duration": 15, **PINNED_PENALTY}, 1, "random"),
     ("DACERF-Multilane-v0", "sparse", {"duration": 15, "reference_lane": "left", **PINNED_PENALTY}, 2, "wave"),
-    ("DACERF-Intersection-v0", "normal", {"duration": 20, **PINNED_PENALTY, **PINNED_WRECKS}, 0, "zero"),
-    ("DACERF-Intersection-v0", "dense", {"duration": 20, **PINNED_PENALTY, **PINNED_WRECKS}, 3, "random"),
+    ("DACERF-Intersection-v0", "normal", {"duration": 20, **ALL_ROUTES, **PINNED_PENALTY, **PINNED_WRECKS}, 0, "zero"),
+    ("DACERF-Intersection-v0", "dense", {"duration": 20, **ALL_ROUTES, **PINNED_PENALTY, **PINNED_WRECKS}, 3, "random"),
     ("DACERF-Intersection-v0", "sparse", {"duration": 20, "routes": ["left"], **PINNED_PENALTY, **PINNED_WRECKS}, 4, "wave"),
 ]
 PINNED_OBS_EVERY = 25

@@ -1,14 +1,18 @@
 """
 Urban intersection of the paper (``DACERF-Intersection-v0``), on highway-env's ``IntersectionEnv``.
 
-A four-way crossroads (one lane each way, 4 m lanes, 22 m × 22 m junction box, the horizontal road has
-priority for highway-env's IDM traffic) with oncoming and crossing traffic spawned on every arm. The ego
-approaches from the south arm and follows a route drawn among ``routes`` (straight, left, right,
-U-turn): the reference path is the centre line of the approach lane, the turning lane of highway-env's
-road network and the exit lane; the U-turn, which the single-lane network lacks, is a keyhole loop
-through the junction box (radius 8.5 m arcs, just above the ego's minimum turning radius of 8.1 m at
-δ = 0.571 rad). The road area is the two 8 m wide roads plus the whole junction box (the solid lines
-highway-env draws along the right-turn lanes at the corners are markings; the U-turn crosses them).
+A four-way crossroads (one lane each way, 4 m lanes, 22 m × 22 m junction box) with oncoming and crossing traffic
+spawned on every arm. Among traffic vehicles the horizontal road has priority (highway-env's IDM traffic and lane
+priorities); between the ego and a traffic vehicle about to conflict, the one ahead goes first and the other yields
+(``right_of_way="first_come"``, the default: traffic brakes for an ego already crossing, as drivers do; with
+``"priority"``, highway-env's rule, crossing traffic never yields to the ego on its minor arm). The ego approaches
+from the south arm and follows a route drawn among ``routes`` (default straight, left and right; ``"u_turn"`` can
+be added): the reference path is the centre line of the approach lane, the turning lane of highway-env's road
+network and the exit lane; the U-turn, which the single-lane network lacks, is a keyhole loop through the junction
+box (radius 8.5 m arcs, just above the ego's minimum turning radius of 8.1 m at δ = 0.571 rad), which the paper's
+steering rate of 0.25 rad/s makes nearly undrivable (the reason it is not drawn by default). The road area is the
+two 8 m wide roads plus the whole junction box (the solid lines highway-env draws along the right-turn lanes at
+the corners are markings; the U-turn crosses them).
 Target speed from ``reference_speed_ranges`` of the route (straight 6-9 m/s, left 4-7, right 3-5,
 U-turn 3-4.5: the steering rate is limited to 0.25 rad/s); random start 20-40 m before the junction
 with small lateral and heading offsets. ``density`` sets the initial vehicle count and the spawn
@@ -28,12 +32,18 @@ from typing import ClassVar
 import numpy as np
 from highway_env.envs.intersection_env import IntersectionEnv as HighwayIntersectionEnv
 from highway_env.road.lane import AbstractLane
+from highway_env.road.regulation import RegulatedRoad
+from highway_env.vehicle.controller import ControlledVehicle
+from highway_env.vehicle.kinematics import Vehicle
 
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
-from sb3_dacerf.envs.driving.common.config import Rule, boolean, interval, number
+from sb3_dacerf.envs.driving.common.config import Rule, boolean, choice, interval, number
 
 ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
 """Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
+DEFAULT_ROUTES = ["straight", "left", "right"]
+"""The routes drawn by default: the U-turn is selectable (``routes``) but not drivable at the paper's steering rate."""
+RIGHT_OF_WAY = ("first_come", "priority")
 
 LANE_WIDTH = AbstractLane.DEFAULT_WIDTH
 JUNCTION_HALF_SIZE = LANE_WIDTH + 5 + LANE_WIDTH / 2
@@ -86,6 +96,20 @@ def _speed_ranges_rule(value: object) -> str | None:
     return f"a dict of route -> [low, high] target speeds [m/s] within [0, 40], routes among {list(ROUTES)}"
 
 
+class FirstComeRoad(RegulatedRoad):
+    """
+    highway-env's regulated junction road, except that a conflict between the ego and a traffic vehicle goes to
+    whichever is ahead: the one behind yields (in practice the traffic vehicle, which brakes to a stop; the ego is
+    the agent's to drive). Conflicts between traffic vehicles follow highway-env's lane priorities, as before.
+    """
+
+    @staticmethod
+    def respect_priorities(v1: Vehicle, v2: Vehicle) -> Vehicle:
+        if isinstance(v1, ControlledVehicle) and isinstance(v2, ControlledVehicle):  # two traffic vehicles
+            return RegulatedRoad.respect_priorities(v1, v2)
+        return v1 if v1.front_distance_to(v2) > v2.front_distance_to(v1) else v2
+
+
 class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     """
     Urban intersection with straight, left, right and U-turn routes; see the module docstring.
@@ -95,6 +119,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
     """
 
+    road: RegulatedRoad
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
         "sparse": {"initial_vehicle_count": 5, "spawn_probability": 0.03},
         "normal": {"initial_vehicle_count": 10, "spawn_probability": 0.06},
@@ -106,6 +131,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         "routes": _routes_rule,
         "reference_speed_ranges": _speed_ranges_rule,
         "clear_crashed_traffic": boolean(),
+        "right_of_way": choice(RIGHT_OF_WAY),
     }
     EXIT_DISTANCE = 25.0
     """Distance driven into an exit lane that ends the episode [m] (highway-env's ``has_arrived``)."""
@@ -118,7 +144,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 "duration": 40,  # [s]
                 "initial_vehicle_count": 10,
                 "spawn_probability": 0.06,  # per policy step
-                "routes": list(ROUTES),  # the ego's route is drawn uniformly among these
+                "routes": list(DEFAULT_ROUTES),  # the ego's route is drawn uniformly among these (also "u_turn")
                 # [m/s] target speed of each route: tight turns are slow, the steering rate is at most 0.25 rad/s
                 "reference_speed_ranges": {"straight": [6.0, 9.0], "left": [4.0, 7.0], "right": [3.0, 5.0], "u_turn": [3.0, 4.5]},
                 "position_scale": 25.0,
@@ -126,6 +152,10 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 # Remove traffic vehicles that crashed into each other (highway-env's junction behaviour fails now
                 # and then) instead of leaving the wrecks in the junction; False: highway-env's behaviour.
                 "clear_crashed_traffic": True,
+                # Who goes first when the ego and a traffic vehicle are about to conflict: "first_come", the one
+                # ahead (traffic behind the ego yields to it); "priority", highway-env's lane priorities (the
+                # horizontal road first: crossing traffic never yields to the ego, which comes from a minor arm).
+                "right_of_way": "first_come",
             }
         )
         return config
@@ -138,6 +168,18 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         missing = set(routes) - set(self.config["reference_speed_ranges"])
         if missing:
             raise ValueError(f"reference_speed_ranges lacks the route(s) {sorted(missing)} (overrides replace the whole dict)")
+
+    def _make_road(self) -> None:
+        """highway-env's junction, on a :class:`FirstComeRoad` if ``right_of_way`` is ``"first_come"``."""
+        super()._make_road()
+        if self.config["right_of_way"] == "first_come":
+            road = self.road
+            self.road = FirstComeRoad(
+                network=road.network,
+                np_random=road.np_random,
+                record_history=road.record_history,
+                neighbour_vehicles_connected_lanes=road.neighbour_vehicles_connected_lanes,
+            )
 
     def _make_vehicles(self, n_vehicles: int = 10) -> None:
         """Spawn and warm up the traffic as highway-env does, then create the ego, its route and reference."""
