@@ -46,6 +46,7 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=True))),  # = the defaults (named so in earlier results)
     "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=False))),  # SB3's MLP critics (0.1.0's)
     "dacerf-delay1": ("DACERF", dict(policy_delay=1)),
+    "dacerf-gradnorm": ("DACERF", dict(langevin_normalize_gradient=True)),
     "dacerf-steps3": ("DACERF", dict(n_sampling_steps=3)),
     "dacerf-tau001": ("DACERF", dict(tau=0.001)),
     "dacerf-noise": ("DACERF", dict(ent_coef=0.0, action_noise_std=0.1)),

@@ -237,6 +237,15 @@ def test_compiled_langevin_loop_trains_and_is_saved(tmp_path, fast):
     assert DACERF.load(tmp_path / "compiled").compile_langevin is True
 
 
+def test_normalized_langevin_gradient_trains_and_is_saved(tmp_path, fast):
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, langevin_normalize_gradient=True, **fast)
+    assert DACERF("MlpPolicy", "Pendulum-v1", **fast).langevin_normalize_gradient is False  # the paper's update by default
+    model.learn(120)
+    assert model.logger.name_to_value["train/langevin_gain"] > 0
+    model.save(tmp_path / "normalized")
+    assert DACERF.load(tmp_path / "normalized").langevin_normalize_gradient is True
+
+
 class NanRewardPendulum(gym.Wrapper):
     def step(self, action):
         observation, _, terminated, truncated, info = self.env.step(action)

@@ -17,6 +17,7 @@ def langevin_targets(
     temperature: float,
     low: float = -1.0,
     high: float = 1.0,
+    normalize_gradient: bool = False,
 ) -> th.Tensor:
     """
     Move actions towards samples of ``p(a|s) ∝ exp(Q(s, a) / temperature)`` with unadjusted Langevin dynamics:
@@ -34,6 +35,10 @@ def langevin_targets(
     :param temperature: Temperature ``α`` of the energy-based target
     :param low: Lower bound the actions are clipped to after every step
     :param high: Upper bound the actions are clipped to after every step
+    :param normalize_gradient: Divide ``∇_a Q`` by ``max(1, mean |∇_a Q|)`` (the mean over the batch and the action
+        coordinates) at every step, so that the mean move per coordinate stays within ``step_size``: the gradient
+        grows with the reward's scale, and with returns in the thousands unnormalised steps carry most targets to
+        the action bounds
     :return: The improved actions ``a*``, detached from any graph
     """
     noise_scale = (2.0 * step_size * temperature) ** 0.5
@@ -41,7 +46,10 @@ def langevin_targets(
     noise = th.randn((n_steps, *actions.shape), device=actions.device, dtype=actions.dtype).mul_(noise_scale)
     action = actions.detach()
     for step in range(n_steps):
-        action = (action + step_size * action_gradient(action) + noise[step]).clamp(low, high)
+        gradient = action_gradient(action)
+        if normalize_gradient:
+            gradient = gradient / gradient.abs().mean().clamp(min=1.0)
+        action = (action + step_size * gradient + noise[step]).clamp(low, high)
     return action.detach()
 
 

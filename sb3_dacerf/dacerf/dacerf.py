@@ -73,6 +73,10 @@ class DACERF(TwinCriticAlgorithm):
     :param langevin_steps: Number of Langevin steps ``N_l`` that turn replay actions into targets ``a*``
     :param langevin_step_size: Langevin step size ``η_a``
     :param langevin_temperature: Temperature ``α`` of the energy-based target ``exp(Q / α)``
+    :param langevin_normalize_gradient: Divide ``∇_a Q`` by ``max(1, mean |∇_a Q|)`` over the batch in every Langevin
+        step, so that a step moves a coordinate by ``η_a`` on average at most whatever the reward's scale (off:
+        the paper's update, whose steps grow with the rewards; with returns in the thousands most targets then
+        sit at the action bounds)
     :param n_sampling_steps: Number of Euler steps of the flow sampler (1 in the paper: one network call per action);
         also accepted in ``policy_kwargs``, 1 if given in neither
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
@@ -144,6 +148,7 @@ class DACERF(TwinCriticAlgorithm):
         langevin_steps: int = 20,
         langevin_step_size: float = 0.03,
         langevin_temperature: float = 0.01,
+        langevin_normalize_gradient: bool = False,
         n_sampling_steps: int | None = None,
         flow_matching_coef: float = 1.0,
         flow_matching_weights: str = "gain",
@@ -188,6 +193,7 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_steps = langevin_steps
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
+        self.langevin_normalize_gradient = langevin_normalize_gradient
         self.flow_matching_coef = flow_matching_coef
         self.flow_matching_weights = flow_matching_weights
         # Entropy regulator
@@ -309,6 +315,7 @@ class DACERF(TwinCriticAlgorithm):
                 n_steps=self.langevin_steps,
                 step_size=self.langevin_step_size,
                 temperature=self.langevin_temperature,
+                normalize_gradient=self.langevin_normalize_gradient,
             )
             with th.no_grad():
                 q_values_star = self._min_q(observations, actions_star)
