@@ -61,3 +61,20 @@ def test_vec_normalize_statistics_travel_with_the_checkpoint(tmp_path, learning_
     learning_curves.run_one(job(tmp_path / "resumed", "sac", 200, vec_normalize=True))
     resumed = learning_curves.run_one(job(tmp_path / "resumed", "sac", 300, vec_normalize=True))
     assert [row["mean_return"] for row in resumed] == [row["mean_return"] for row in straight]
+
+
+def test_langevin_scale_reports_a_checkpoint(tmp_path, learning_curves, capsys):
+    """benchmarks/langevin_scale.py reads a run's checkpoint; below a mean |∇_a Q| of 1 both updates agree."""
+    learning_curves.run_one(job(tmp_path, "dacerf", 100))
+    capsys.readouterr()  # the run's own lines
+    spec = importlib.util.spec_from_file_location("langevin_scale", BENCHMARKS / "langevin_scale.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main([str(learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", "dacerf", 3)), "--batch-size", "64"])
+    line = capsys.readouterr().out.strip()
+    assert line.startswith("Pendulum-v1 dacerf-seed3 at 100 steps | mean |Q|")
+    paper, normalised = line.split(" | ")[4:6]
+    # a critic trained for 50 updates has small action gradients: the normalisation divides by 1
+    assert paper.removeprefix("paper: ") == normalised.removeprefix("normalised: ").split(" (a_B")[0]
+    with pytest.raises(SystemExit):
+        module.main([str(tmp_path)])
