@@ -132,7 +132,11 @@ def test_models_saved_by_version_0_1_0_load_and_act_alike(name):
     model_class = {"dacerf": DACERF, "dacer": DACER}[name]
     model = model_class.load(DATA / "models_0.1.0" / f"{name}.zip")
     obs = np.array(expected["observations"], dtype=np.float32)
-    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], np.array(expected[name], dtype=np.float32))
+    # Within float32 rounding: the expected actions were recorded on another CPU, and float32 matrix products round
+    # differently with another instruction set (one ulp seen); wrongly loaded weights move actions by far more
+    np.testing.assert_allclose(
+        model.predict(obs, deterministic=True)[0], np.array(expected[name], dtype=np.float32), rtol=1e-6, atol=1e-6
+    )
     model.set_env(gym.make("Pendulum-v1"))
     model.learn(20, reset_num_timesteps=False)  # and the loaded optimizers go on
 
