@@ -113,10 +113,11 @@ def sample_dacerf_params(
         "n_sampling_steps": trial.suggest_categorical("n_sampling_steps", [1, 2, 4, 8]),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCH)),
         # The entropy regulator (learned α, or the paper's mechanism without added noise), the actor-loss
-        # weighting and LayerNorm critics: the options benchmarks/learning.md measures
+        # weighting, LayerNorm critics and the normalised Langevin gradient: the options benchmarks/learning.md measures
         "ent_coef": trial.suggest_categorical("ent_coef", ["auto", "off"]),
         "flow_matching_weights": trial.suggest_categorical("flow_matching_weights", ["gain", "q_scale", "td3bc", "flowrl"]),
         "critic_layer_norm": trial.suggest_categorical("critic_layer_norm", [False, True]),
+        "langevin_normalize_gradient": trial.suggest_categorical("langevin_normalize_gradient", [False, True]),
     }
     trial.set_user_attr("batch_size", 2 ** sampled["batch_size_pow"])
     return convert_dacerf_params(sampled, policy_kwargs)

@@ -177,10 +177,15 @@ def test_sampler_builds_dacerf():
         layer_norm = hyperparams["policy_kwargs"]["critic_layer_norm"]
         assert any(isinstance(m, th.nn.LayerNorm) for m in model.critic.modules()) == layer_norm
         assert model.ent_coef == hyperparams["ent_coef"] and hyperparams["ent_coef"] in ("auto", 0.0)
+        assert model.langevin_normalize_gradient == hyperparams["langevin_normalize_gradient"]
         seen |= {("ent_coef", hyperparams["ent_coef"]), ("layer_norm", layer_norm)}
+        seen.add(("normalize_gradient", hyperparams["langevin_normalize_gradient"]))
         study.tell(trial, 0.0)
     # both values of each switch were drawn: the sampler explores the options benchmarks/learning.md measures
-    assert seen == {("ent_coef", "auto"), ("ent_coef", 0.0), ("layer_norm", False), ("layer_norm", True)}
+    assert seen == {
+        *[("ent_coef", "auto"), ("ent_coef", 0.0), ("layer_norm", False), ("layer_norm", True)],
+        *[("normalize_gradient", False), ("normalize_gradient", True)],
+    }
 
 
 def test_train_enjoy_record_video_continue(tmp_path):
