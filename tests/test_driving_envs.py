@@ -203,6 +203,21 @@ def test_dynamic_severe_penalty():
     assert env._severe_penalty() == 350.0
 
 
+def test_discounted_dynamic_severe_penalty():
+    """With a discount γ, ending the episode costs more than any discounted drive above -cost_rate per step, and no more."""
+    from sb3_dacerf.envs.driving.multilane import MultilaneEnv
+
+    gamma, base, rate = 0.99, 200.0, 21.0
+    env = MultilaneEnv(config={"duration": 30, "dynamic_penalty_discount": gamma})
+    env.reset(seed=0)
+    for time, steps_left in ((0.1, 299), (10.0, 200), (29.9, 1), (30.0, 0)):
+        env.time = time
+        drive_on = rate * sum(gamma**k for k in range(steps_left))  # discounted worst drive still preferred, sign flipped
+        assert env._severe_penalty() == pytest.approx(base + drive_on)
+    env.time = 0.1
+    assert env._severe_penalty() < 0.4 * (base + rate * 299)  # far below the undiscounted penalty at the first step
+
+
 def test_highway_success_at_time_limit():
     env, *_ = empty_highway(duration=1)
     for _ in range(10):

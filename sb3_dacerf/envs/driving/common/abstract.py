@@ -150,6 +150,7 @@ class PaperDrivingMixin(_HighwayEnv):
                 "collision_penalty": "dynamic",
                 "dynamic_penalty_base": 200.0,  # the dynamic penalty's floor, at the time limit
                 "dynamic_penalty_cost_rate": 20.0,  # per step left: the per-step cost of driving on that is still preferred
+                "dynamic_penalty_discount": 1.0,  # discount of the steps left (the learner's gamma; 1: undiscounted)
             }
         )
         return config
@@ -275,12 +276,18 @@ class PaperDrivingMixin(_HighwayEnv):
         every drive of the scripted driver measured by ``benchmarks/driving_reward_audit.py`` (worst: -17.3 per step,
         a collision-free 30 s drive behind slower traffic in dense multilane traffic), where the constant 200 made
         leaving the road (-313 in 9 steps) better than its drives in normal (-633) and dense (-2128) traffic.
+
+        ``dynamic_penalty_discount`` (γ, default 1) replaces ``steps_left`` by its discounted length
+        ``(1 - γ^steps_left) / (1 - γ)``: the same guarantee for a learner that maximises the return discounted by γ,
+        with the smallest penalty that gives it (2,262 instead of 8,579 at the intersection's first step, γ = 0.99).
         """
         config = self.config
         if config["collision_penalty"] != "dynamic":
             return float(config["collision_penalty"])
         steps_left = max(round((config["duration"] - self.time) * config["policy_frequency"]), 0)
-        return float(config["dynamic_penalty_base"] + (config["rho_step"] + config["dynamic_penalty_cost_rate"]) * steps_left)
+        discount = config["dynamic_penalty_discount"]
+        horizon = steps_left if discount == 1 else (1 - discount**steps_left) / (1 - discount)
+        return float(config["dynamic_penalty_base"] + (config["rho_step"] + config["dynamic_penalty_cost_rate"]) * horizon)
 
     def _rewards(self, action: np.ndarray | None = None) -> dict[str, float]:
         """

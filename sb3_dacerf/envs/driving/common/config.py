@@ -155,6 +155,7 @@ COMMON_RULES: dict[str, Rule] = {
     "collision_penalty": severe_penalty,
     "dynamic_penalty_base": number(0),
     "dynamic_penalty_cost_rate": number(0),
+    "dynamic_penalty_discount": number(0, 1, low_open=True),
     **{
         key: number(0)
         for key in (
