@@ -40,6 +40,7 @@ _HOOK = sys.modules.get("sb3_dacerf_zoo_hook")
 HOOK_INSTALLED = _HOOK is not None and _HOOK.ZooFinder in sys.meta_path
 
 DRIVING_IDS = ["DACERF-Multilane-v0", "DACERF-Intersection-v0"]
+DRIVING_KEYS = ["langevin_normalize_gradient", "normalize"]  # what the driving entries set beyond the defaults
 MUJOCO_IDS = [
     "Ant-v5",
     "HalfCheetah-v5",
@@ -126,7 +127,12 @@ def test_yaml_entries():
     for env_id in ["Pendulum-v1", *MUJOCO_IDS, *DMC_ENV_IDS, *DRIVING_IDS]:
         entry = dacerf[env_id]
         assert set(entry) - ZOO_KEYS <= dacerf_args, env_id
-        assert set(entry) <= {"policy", "n_timesteps", "learning_starts"}, env_id
+        driving_keys = set(DRIVING_KEYS) if env_id in DRIVING_IDS else set()
+        assert set(entry) <= {"policy", "n_timesteps", "learning_starts"} | driving_keys, env_id
+    # the driving entries: the normalised Langevin gradient and normalised observations (as learning_curves.py ran them)
+    for env_id in DRIVING_IDS:
+        assert dacerf[env_id]["langevin_normalize_gradient"] is True
+        assert eval(dacerf[env_id]["normalize"]) == eval(sac[env_id]["normalize"]) == {"norm_obs": True, "norm_reward": False}
     paper = dict(dacerf["paper"])
     assert paper.pop("policy") == "MlpPolicy"
     assert eval(paper.pop("policy_kwargs")) == PAPER_HYPERPARAMETERS["policy_kwargs"]
@@ -147,9 +153,10 @@ def test_dacer_yaml_entries():
         assert set(entry) - ZOO_KEYS <= dacer_args, env_id
         assert entry["n_timesteps"] == dacerf[env_id]["n_timesteps"], env_id
         assert entry.get("learning_starts") == dacerf[env_id].get("learning_starts"), env_id
-    # Every entry uses the constructor defaults
+    # Every entry uses the constructor defaults (the driving ones with normalised observations)
     for env_id in ["Pendulum-v1", *MUJOCO_IDS, *DMC_ENV_IDS, *DRIVING_IDS]:
-        assert set(dacer[env_id]) <= {"policy", "n_timesteps", "learning_starts"}, env_id
+        driving_keys = {"normalize"} if env_id in DRIVING_IDS else set()
+        assert set(dacer[env_id]) <= {"policy", "n_timesteps", "learning_starts"} | driving_keys, env_id
 
 
 def test_sampler_builds_dacer():
