@@ -46,7 +46,7 @@ GROUPS = {
     "liveness": ("liveness",),
     "safety": ("safe_front", "safe_space", "safe_side", "safe_rear"),
     "boundary": ("boundary",),
-    "severe": ("collision", "off_road"),
+    "severe": ("collision", "off_road", "stalled"),
 }
 
 

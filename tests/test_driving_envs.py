@@ -2,6 +2,7 @@
 
 import json
 import os
+import pickle
 import subprocess
 import sys
 import warnings
@@ -216,6 +217,40 @@ def test_discounted_dynamic_severe_penalty():
         assert env._severe_penalty() == pytest.approx(base + drive_on)
     env.time = 0.1
     assert env._severe_penalty() < 0.4 * (base + rate * 299)  # far below the undiscounted penalty at the first step
+
+
+def test_stall_ends_the_episode_with_the_severe_penalty():
+    env = gym.make("DACERF-Intersection-v0", config={"stall_timeout": 5.0})
+    env.reset(seed=0)
+    brake = np.array([-1.0, 0.0], dtype=np.float32)
+    steps, terminated, truncated = 0, False, False
+    while not (terminated or truncated):
+        _, reward, terminated, truncated, info = env.step(brake)
+        steps += 1
+    # stopped within a few seconds, then 5 s without 2 m of progress
+    assert terminated and info["stalled"] and not (info["collision"] or info["off_road"] or info["is_success"])
+    assert 50 < steps < 100
+    assert info["reward_terms"]["stalled"] == pytest.approx(-env.unwrapped._severe_penalty()) and reward < -1000
+    # off by default
+    env = gym.make("DACERF-Intersection-v0")
+    env.reset(seed=0)
+    for _ in range(100):
+        _, _, terminated, _, info = env.step(brake)
+    assert not terminated and not info["stalled"] and info["reward_terms"]["stalled"] == 0.0
+
+
+def test_env_pickled_by_an_earlier_version_steps_on():
+    """A training checkpoint's env from before config keys were added: they take their defaults."""
+    env = gym.make("DACERF-Intersection-v0")
+    env.reset(seed=0)
+    env.step(np.zeros(2, dtype=np.float32))
+    unwrapped = env.unwrapped
+    for key in ("dynamic_penalty_discount", "stall_timeout", "stall_distance"):
+        del unwrapped.config[key]
+    del unwrapped._progress
+    restored = pickle.loads(pickle.dumps(env))
+    _, reward, *_ = restored.step(np.zeros(2, dtype=np.float32))
+    assert np.isfinite(reward) and restored.unwrapped.config["stall_timeout"] == 0.0
 
 
 def test_highway_success_at_time_limit():

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections import deque
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
@@ -151,9 +152,24 @@ class PaperDrivingMixin(_HighwayEnv):
                 "dynamic_penalty_base": 200.0,  # the dynamic penalty's floor, at the time limit
                 "dynamic_penalty_cost_rate": 20.0,  # per step left: the per-step cost of driving on that is still preferred
                 "dynamic_penalty_discount": 1.0,  # discount of the steps left (the learner's gamma; 1: undiscounted)
+                # A stall (less than stall_distance [m] of progress along the reference within stall_timeout [s])
+                # ends the episode with the severe-event penalty; 0: never
+                "stall_timeout": 0.0,
+                "stall_distance": 2.0,
             }
         )
         return config
+
+    def __setstate__(self, state: dict) -> None:
+        """
+        Unpickle an env, e.g. from a training checkpoint, also one pickled by an earlier version: config keys added
+        since then take their defaults, and an episode in progress goes on without a stall history.
+        """
+        self.__dict__.update(state)
+        self.config = {**self.default_config(), **self.config}
+        if "_progress" not in state and self.scene is not None:
+            window = round(self.config["stall_timeout"] * self.config["policy_frequency"])
+            self._progress = deque([self.scene.reference_progress], maxlen=window + 1 if window else None)
 
     def configure(self, config: dict | None) -> None:
         unknown = sorted(set(config or {}) - set(self.default_config()))
@@ -192,6 +208,8 @@ class PaperDrivingMixin(_HighwayEnv):
         # The ego stops instead of reversing: the paper's task has no reverse gear.
         self.vehicle.MIN_SPEED = 0.0
         self.scene = observe_scene(self)
+        window = round(self.config["stall_timeout"] * self.config["policy_frequency"])
+        self._progress: deque[float] = deque([self.scene.reference_progress], maxlen=window + 1 if window else None)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """
@@ -217,6 +235,7 @@ class PaperDrivingMixin(_HighwayEnv):
         self.time += 1 / self.config["policy_frequency"]
         self._simulate(action)
         self.scene = observe_scene(self)
+        self._progress.append(self.scene.reference_progress)
         obs = self.observation_type.observe(self.scene)
         self._reward_terms = self._rewards(action)
         reward = float(sum(self._reward_terms.values()))
@@ -303,6 +322,7 @@ class PaperDrivingMixin(_HighwayEnv):
             self.action_type.applied_increment,
             self.reference_speed,
             self._severe_penalty(),
+            self._stalled(),
         )
 
     def _current_scene(self) -> Scene:
@@ -314,13 +334,23 @@ class PaperDrivingMixin(_HighwayEnv):
     def _reward(self, action: np.ndarray) -> float:
         return float(sum(self._rewards(action).values()))
 
+    def _stalled(self) -> bool:
+        """Whether the ego advanced less than ``stall_distance`` along its reference in the last ``stall_timeout`` s."""
+        progress = self._progress
+        return (
+            progress.maxlen is not None
+            and len(progress) == progress.maxlen
+            and progress[-1] - progress[0] < self.config["stall_distance"]
+        )
+
     def _is_terminated(self) -> bool:
-        """Collisions and leaving the road end the episode."""
-        return bool(self.vehicle.crashed or self._current_scene().road_clearance < 0)
+        """Collisions, leaving the road and (with ``stall_timeout``) a stall end the episode."""
+        return bool(self.vehicle.crashed or self._current_scene().road_clearance < 0 or self._stalled())
 
     def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
         scene = self._current_scene()
         crashed, off_road = bool(self.vehicle.crashed), bool(scene.road_clearance < 0)
+        stalled = self._stalled() and not (crashed or off_road)
         return {
             "speed": float(self.vehicle.speed),
             "reference_speed": float(self.reference_speed),
@@ -328,6 +358,7 @@ class PaperDrivingMixin(_HighwayEnv):
             "crashed": crashed,
             "collision": crashed,
             "off_road": off_road,
-            "is_success": bool(self._is_success() and not (crashed or off_road)),
+            "stalled": stalled,
+            "is_success": bool(self._is_success() and not (crashed or off_road or stalled)),
             "reward_terms": dict(self._reward_terms),
         }

@@ -156,6 +156,8 @@ COMMON_RULES: dict[str, Rule] = {
     "dynamic_penalty_base": number(0),
     "dynamic_penalty_cost_rate": number(0),
     "dynamic_penalty_discount": number(0, 1, low_open=True),
+    "stall_timeout": number(0),
+    "stall_distance": number(0, low_open=True),
     **{
         key: number(0)
         for key in (

@@ -49,6 +49,8 @@ class Scene:
     reference_curvature: float
     road_clearance: float
     """Distance from the ego centre to the road edge [m], negative off the road."""
+    reference_progress: float = 0.0
+    """Arc length of the ego's projection on its reference path [m]."""
 
 
 def observe_scene(env: PaperDrivingMixin) -> Scene:
@@ -102,6 +104,7 @@ def observe_scene(env: PaperDrivingMixin) -> Scene:
         heading_error=float(utils.wrap_to_pi(ego.heading - float(headings[0]))),
         reference_curvature=float(curvatures[0]),
         road_clearance=env._road_clearance(ego.position),
+        reference_progress=s,
     )
 
 

@@ -17,7 +17,9 @@ Every signed term is in ``info["reward_terms"]``; their sum is the reward:
   the episode: by default the paper's "dynamically calculated" one, ``dynamic_penalty_base + (rho_step +
   dynamic_penalty_cost_rate) * steps_left`` (200 + 21 per step left until the time limit), so that ending the
   episode early is never worth more than driving on; ``collision_penalty=200`` selects the paper's constant
-  (see ``PaperDrivingMixin._severe_penalty``).
+  (see ``PaperDrivingMixin._severe_penalty``);
+- ``stalled``: the same penalty when the ego has advanced less than ``stall_distance`` along its reference within the
+  last ``stall_timeout`` seconds, which ends the episode (off by default: ``stall_timeout=0``).
 
 ``h(e) = δ_h² (sqrt(1 + (e/δ_h)²) - 1)`` is the pseudo-Huber penalty, ``δ_h = huber_delta`` = 1.
 """
@@ -48,6 +50,7 @@ REWARD_TERMS = (
     "boundary",
     "collision",
     "off_road",
+    "stalled",
 )
 
 
@@ -63,6 +66,7 @@ def reward_terms(
     applied_increment: np.ndarray,
     reference_speed: float,
     severe_penalty: float,
+    stalled: bool = False,
 ) -> dict[str, float]:
     """
     The paper's signed reward and cost terms of one step.
@@ -73,6 +77,7 @@ def reward_terms(
     :param applied_increment: the ``[Δa_x, Δδ]`` applied this step after clipping (the comfort terms' rates)
     :param reference_speed: the ego's target speed [m/s]
     :param severe_penalty: the penalty of a collision or of leaving the road at this step (positive)
+    :param stalled: whether the episode ends because the ego made no progress (``stall_timeout``): the same penalty
     :return: a dict of {term: signed contribution to the reward}, in the order of ``REWARD_TERMS``
     """
     huber_delta = config["huber_delta"]
@@ -117,5 +122,6 @@ def reward_terms(
         "boundary": -config["rho_boundary"] * max(0.0, ego.WIDTH / 2 + config["boundary_threshold"] - scene.road_clearance),
         "collision": -severe_penalty * float(ego.crashed),
         "off_road": -severe_penalty * float(off_road),
+        "stalled": -severe_penalty * float(stalled and not (ego.crashed or off_road)),
     }
     return {name: float(value) for name, value in terms.items()}
