@@ -315,3 +315,14 @@ def test_render_errors_name_the_problem(tmp_path, capsys):
     with pytest.raises(SystemExit):
         render.main(["--algo", "sac", "--out-dir", str(tmp_path)])
     assert "--algo and --config apply to --model" in capsys.readouterr().err
+
+
+def test_standing_value_compares_standing_with_the_scripted_driver(capsys):
+    standing_value = load_example("standing_value", BENCHMARKS)
+    summary = standing_value.main(["--episodes", "3", "--stand-steps", "30", "--config", '{"routes": ["right"]}'])
+    assert list(summary) == ["right"]
+    # standing costs speed tracking at every step; the scripted driver's right turns are cheap
+    assert summary["right"]["standing"] < -100 < summary["right"]["scripted"]
+    assert "| right | 3 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        standing_value.main(["--gamma", "1"])

@@ -1,0 +1,94 @@
+"""
+Is driving worth more than standing still, in the return a learner maximises? Per route of a driving scenario.
+
+For each seeded episode this plays two policies from the same start:
+
+- ``stand``: full braking from the first step, then standing; its value is the discounted return of the first
+  ``--stand-steps`` steps plus the mean reward of their last 20 steps continued for ever (what a critic bootstrapped
+  at the time limit sees; an episode that ends earlier, e.g. when a stall ends it, counts as it ended);
+- ``scripted``: :class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`, to the end of the episode.
+
+and prints, per route, the mean discounted values (``--gamma``), the scripted driver's outcomes and how often it is
+worth more than standing. Any config key can be set with ``--config`` (e.g. the severe-event penalty)::
+
+    python benchmarks/standing_value.py --episodes 50
+    python benchmarks/standing_value.py --episodes 50 --config '{"dynamic_penalty_discount": 0.99}'
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+
+import gymnasium as gym
+import numpy as np
+
+import sb3_dacerf  # noqa: F401  (registers the ids)
+from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+BRAKE = np.array([-1.0, 0.0], dtype=np.float32)
+
+
+def discounted(rewards: list[float], gamma: float) -> float:
+    return float(np.sum(np.asarray(rewards) * gamma ** np.arange(len(rewards))))
+
+
+def standing_value(env: gym.Env, seed: int, gamma: float, steps: int) -> float:
+    env.reset(seed=seed)
+    rewards, done = [], False
+    while not done and len(rewards) < steps:
+        _, reward, terminated, truncated, _ = env.step(BRAKE)
+        rewards.append(float(reward))
+        done = terminated or truncated
+    value = discounted(rewards, gamma)
+    if not done:  # standing on for ever at the rate of the last 20 steps
+        value += gamma ** len(rewards) * float(np.mean(rewards[-20:])) / (1 - gamma)
+    return value
+
+
+def scripted_value(env: gym.Env, seed: int, gamma: float) -> tuple[float, dict]:
+    obs, _ = env.reset(seed=seed)
+    driver = ScriptedDriver(env)
+    rewards, done, info = [], False, {}
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(driver(obs))
+        rewards.append(float(reward))
+        done = terminated or truncated
+    return discounted(rewards, gamma), info
+
+
+def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="DACERF-Intersection-v0")
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=10_000, help="first evaluation seed")
+    parser.add_argument("--gamma", type=float, default=0.99)
+    parser.add_argument("--stand-steps", type=int, default=100)
+    parser.add_argument("--config", type=json.loads, default={}, help="env config overrides, as JSON")
+    args = parser.parse_args(argv)
+    if not 0 < args.gamma < 1:
+        parser.error(f"--gamma must be in (0, 1), got {args.gamma}")
+    env = gym.make(args.env, config=args.config)
+    rows: dict[str, list[tuple[float, float, bool, bool]]] = defaultdict(list)
+    for seed in range(args.seed, args.seed + args.episodes):
+        stand = standing_value(env, seed, args.gamma, args.stand_steps)
+        drive, info = scripted_value(env, seed, args.gamma)
+        route = info.get("route", "all")
+        rows[route].append((stand, drive, bool(info["is_success"]), bool(info["collision"])))
+    summary = {}
+    print(f"{args.env}, config {args.config}, gamma {args.gamma}, seeds {args.seed}-{args.seed + args.episodes - 1}")
+    print("| route | episodes | standing | scripted driver | its arrival / collision | scripted worth more |")
+    print("|---|---|---|---|---|---|")
+    for route, values in sorted(rows.items()):
+        v = np.asarray(values, dtype=float)
+        summary[route] = dict(standing=v[:, 0].mean(), scripted=v[:, 1].mean(), better=float(np.mean(v[:, 1] > v[:, 0])))
+        print(
+            f"| {route} | {len(v)} | {v[:, 0].mean():,.0f} | {v[:, 1].mean():,.0f} | {v[:, 2].mean():.0%} / "
+            f"{v[:, 3].mean():.0%} | {summary[route]['better']:.0%} |"
+        )
+    return summary
+
+
+if __name__ == "__main__":
+    main()
