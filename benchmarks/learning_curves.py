@@ -176,14 +176,17 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
 
 
 def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> Any:
-    """A fresh model of one variant on its training environment (VecNormalize'd with ``job["vec_normalize"]``)."""
+    """
+    A fresh model of one variant on its training environment (VecNormalize'd with ``job["vec_normalize"]``, rewards
+    too with ``job["normalize_reward"]``).
+    """
     import gymnasium as gym
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     env = DummyVecEnv([lambda: gym.make(job["env"], **job["env_kwargs"])])
-    if job["vec_normalize"]:
-        env = VecNormalize(env, norm_obs=True, norm_reward=False)
+    if job["vec_normalize"] or job.get("normalize_reward"):
+        env = VecNormalize(env, norm_obs=True, norm_reward=bool(job.get("normalize_reward")))
     kwargs = dict(kwargs)
     if "action_noise_std" in kwargs:
         dim = env.action_space.shape[0]
@@ -392,6 +395,12 @@ def main() -> None:
         action="store_true",
         help="normalise observations with VecNormalize(norm_obs=True, norm_reward=False), statistics saved in the checkpoints",
     )
+    parser.add_argument(
+        "--normalize-reward",
+        action="store_true",
+        help="with --vec-normalize's observations, also scale the training rewards by VecNormalize's running return "
+        "std (norm_reward=True); evaluations report the raw returns",
+    )
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
     parser.add_argument(
         "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
@@ -430,6 +439,7 @@ def main() -> None:
             checkpoint_freq=args.checkpoint_freq,
             learning_starts=args.learning_starts,
             vec_normalize=args.vec_normalize,
+            normalize_reward=args.normalize_reward,
         )
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants

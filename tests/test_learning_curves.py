@@ -56,11 +56,18 @@ def test_resumed_run_matches_uninterrupted_run(tmp_path, learning_curves, varian
     assert [row["mean_return"] for row in again] == returns
 
 
-def test_vec_normalize_statistics_travel_with_the_checkpoint(tmp_path, learning_curves):
-    straight = learning_curves.run_one(job(tmp_path / "straight", "sac", 300, vec_normalize=True))
-    learning_curves.run_one(job(tmp_path / "resumed", "sac", 200, vec_normalize=True))
-    resumed = learning_curves.run_one(job(tmp_path / "resumed", "sac", 300, vec_normalize=True))
+@pytest.mark.parametrize("normalize_reward", [False, True])
+def test_vec_normalize_statistics_travel_with_the_checkpoint(tmp_path, learning_curves, normalize_reward):
+    settings = dict(vec_normalize=True, normalize_reward=normalize_reward)
+    straight = learning_curves.run_one(job(tmp_path / "straight", "sac", 300, **settings))
+    learning_curves.run_one(job(tmp_path / "resumed", "sac", 200, **settings))
+    resumed = learning_curves.run_one(job(tmp_path / "resumed", "sac", 300, **settings))
     assert [row["mean_return"] for row in resumed] == [row["mean_return"] for row in straight]
+    folder = learning_curves.checkpoint_dir(tmp_path / "resumed", "Pendulum-v1", "sac", 3)
+    model, *_ = learning_curves.load_checkpoint(learning_curves.algorithm_class("SAC"), folder, "cpu")
+    assert model.get_vec_normalize_env().norm_reward is normalize_reward
+    # evaluations report raw returns (Pendulum: between -16.3 and 0 per step, 200 steps)
+    assert all(-3300 < row["mean_return"] <= 0 for row in resumed)
 
 
 def test_langevin_scale_reports_a_checkpoint(tmp_path, learning_curves, capsys):
