@@ -296,6 +296,7 @@ def test_optimize_two_workers_share_one_study(tmp_path):
         "ent_coef",
         "flow_matching_weights",
         "critic_layer_norm",
+        "langevin_normalize_gradient",
     }
 
 

@@ -90,6 +90,7 @@ class PaperDrivingMixin(_HighwayEnv):
 
     reference: ReferencePath
     reference_speed: float
+    _progress: deque[float]
     # Set by highway-env: None until the first reset / render
     observation_space: spaces.Space | None
     action_space: spaces.Space | None
@@ -165,11 +166,9 @@ class PaperDrivingMixin(_HighwayEnv):
         Unpickle an env, e.g. from a training checkpoint, also one pickled by an earlier version: config keys added
         since then take their defaults, and an episode in progress goes on without a stall history.
         """
-        self.__dict__.update(state)
-        self.config = {**self.default_config(), **self.config}
+        self.__dict__.update({**state, "config": {**self.default_config(), **state["config"]}})
         if "_progress" not in state and self.scene is not None:
-            window = round(self.config["stall_timeout"] * self.config["policy_frequency"])
-            self._progress = deque([self.scene.reference_progress], maxlen=window + 1 if window else None)
+            self._start_stall_history()
 
     def configure(self, config: dict | None) -> None:
         unknown = sorted(set(config or {}) - set(self.default_config()))
@@ -208,8 +207,12 @@ class PaperDrivingMixin(_HighwayEnv):
         # The ego stops instead of reversing: the paper's task has no reverse gear.
         self.vehicle.MIN_SPEED = 0.0
         self.scene = observe_scene(self)
+        self._start_stall_history()
+
+    def _start_stall_history(self) -> None:
+        """The ego's progress along its reference over the last ``stall_timeout`` seconds, from the current scene."""
         window = round(self.config["stall_timeout"] * self.config["policy_frequency"])
-        self._progress: deque[float] = deque([self.scene.reference_progress], maxlen=window + 1 if window else None)
+        self._progress = deque([self._current_scene().reference_progress], maxlen=window + 1 if window else None)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """
