@@ -338,12 +338,16 @@ class PaperDrivingMixin(_HighwayEnv):
         return float(sum(self._rewards(action).values()))
 
     def _stalled(self) -> bool:
-        """Whether the ego advanced less than ``stall_distance`` along its reference in the last ``stall_timeout`` s."""
+        """
+        Whether the ego advanced less than ``stall_distance`` along its reference in the last ``stall_timeout`` s,
+        and neither collided nor left the road (those name the episode's end first).
+        """
         progress = self._progress
         return (
             progress.maxlen is not None
             and len(progress) == progress.maxlen
             and progress[-1] - progress[0] < self.config["stall_distance"]
+            and not (self.vehicle.crashed or self._current_scene().road_clearance < 0)
         )
 
     def _is_terminated(self) -> bool:
@@ -352,8 +356,7 @@ class PaperDrivingMixin(_HighwayEnv):
 
     def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
         scene = self._current_scene()
-        crashed, off_road = bool(self.vehicle.crashed), bool(scene.road_clearance < 0)
-        stalled = self._stalled() and not (crashed or off_road)
+        crashed, off_road, stalled = bool(self.vehicle.crashed), bool(scene.road_clearance < 0), self._stalled()
         return {
             "speed": float(self.vehicle.speed),
             "reference_speed": float(self.reference_speed),

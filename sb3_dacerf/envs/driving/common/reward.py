@@ -77,7 +77,8 @@ def reward_terms(
     :param applied_increment: the ``[Δa_x, Δδ]`` applied this step after clipping (the comfort terms' rates)
     :param reference_speed: the ego's target speed [m/s]
     :param severe_penalty: the penalty of a collision or of leaving the road at this step (positive)
-    :param stalled: whether the episode ends because the ego made no progress (``stall_timeout``): the same penalty
+    :param stalled: whether the episode ends because the ego made no progress (``stall_timeout``) and neither
+        collided nor left the road: the same penalty
     :return: a dict of {term: signed contribution to the reward}, in the order of ``REWARD_TERMS``
     """
     huber_delta = config["huber_delta"]
@@ -122,6 +123,6 @@ def reward_terms(
         "boundary": -config["rho_boundary"] * max(0.0, ego.WIDTH / 2 + config["boundary_threshold"] - scene.road_clearance),
         "collision": -severe_penalty * float(ego.crashed),
         "off_road": -severe_penalty * float(off_road),
-        "stalled": -severe_penalty * float(stalled and not (ego.crashed or off_road)),
+        "stalled": -severe_penalty * float(stalled),
     }
     return {name: float(value) for name, value in terms.items()}
