@@ -16,7 +16,8 @@ comparisons can be run in pieces (one variant or seed range at a time) and ``--r
 
 Environment ids registered by ``sb3_dacerf`` (driving, DMC) work too; for environments whose ``info`` carries
 ``is_success`` / ``collision`` / ``off_road`` the arrival, collision and off-road rates of the evaluation
-episodes are reported as well.
+episodes are reported as well. ``--env-kwargs`` go to ``gym.make`` of every env, ``--train-env-kwargs`` to the
+training env's only (a training aid such as the intersection's exploring starts, with evaluations left as they are).
 """
 
 import argparse
@@ -175,6 +176,17 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
     return model, state["rows"], state["wall_seconds"]
 
 
+def training_env_kwargs(env_kwargs: dict[str, Any], train_env_kwargs: dict[str, Any]) -> dict[str, Any]:
+    """
+    The ``gym.make`` keyword arguments of the training env: ``env_kwargs`` updated by ``train_env_kwargs``, the two
+    ``config`` dicts merged key by key (a training-only config key such as exploring starts keeps the shared ones).
+    """
+    merged = {**env_kwargs, **train_env_kwargs}
+    if "config" in env_kwargs and "config" in train_env_kwargs:
+        merged["config"] = {**env_kwargs["config"], **train_env_kwargs["config"]}
+    return merged
+
+
 def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> Any:
     """
     A fresh model of one variant on its training environment (VecNormalize'd with ``job["vec_normalize"]``, rewards
@@ -184,7 +196,8 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    env = DummyVecEnv([lambda: gym.make(job["env"], **job["env_kwargs"])])
+    env_kwargs = training_env_kwargs(job["env_kwargs"], job.get("train_env_kwargs") or {})
+    env = DummyVecEnv([lambda: gym.make(job["env"], **env_kwargs)])
     if job["vec_normalize"] or job.get("normalize_reward"):
         env = VecNormalize(env, norm_obs=True, norm_reward=bool(job.get("normalize_reward")))
     kwargs = dict(kwargs)
@@ -381,6 +394,13 @@ def main() -> None:
         default={},
         help='keyword arguments of gym.make, as JSON, e.g. \'{"config": {"collision_penalty": 500}}\' (use another --out)',
     )
+    parser.add_argument(
+        "--train-env-kwargs",
+        type=json.loads,
+        default={},
+        help="keyword arguments of gym.make for the training env only, merged over --env-kwargs (config keys one by "
+        'one), e.g. \'{"config": {"reference_start_probability": 0.5}}\': evaluations keep --env-kwargs',
+    )
     parser.add_argument("--out", help="results folder (default: benchmarks/results, with --quick benchmarks/results/quick)")
     parser.add_argument("--first-seed", type=int, default=0, help="seeds are first-seed .. first-seed + seeds - 1")
     parser.add_argument(
@@ -436,6 +456,7 @@ def main() -> None:
             device=args.device,
             out=str(out),
             env_kwargs=args.env_kwargs,
+            train_env_kwargs=args.train_env_kwargs,
             checkpoint_freq=args.checkpoint_freq,
             learning_starts=args.learning_starts,
             vec_normalize=args.vec_normalize,

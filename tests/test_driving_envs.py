@@ -239,15 +239,42 @@ def test_stall_ends_the_episode_with_the_severe_penalty():
     assert not terminated and not info["stalled"] and info["reward_terms"]["stalled"] == 0.0
 
 
+def test_exploring_start_on_the_reference_path():
+    """reference_start_probability=1: every episode starts on the path, up to the exit lane, steering along its curvature."""
+    from sb3_dacerf.envs.driving.common.reference import nominal_steering
+
+    env = gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 1.0})
+    approach_end = env.unwrapped.road.network.get_lane(("o0", "ir0", 0)).length
+    turning = 0
+    for seed in range(12):
+        observation, _ = env.reset(seed=seed)
+        unwrapped = env.unwrapped
+        scene, ego = unwrapped.scene, unwrapped.vehicle
+        assert approach_end - 20.5 <= scene.reference_progress <= approach_end + 25.0
+        assert abs(scene.lateral_error) < 1.0 and abs(scene.heading_error) < 0.1
+        steering = nominal_steering(scene.reference_curvature, ego.LENGTH)
+        assert unwrapped.action_type.command[1] == pytest.approx(ego.action["steering"])
+        assert unwrapped.action_type.command[1] == pytest.approx(steering, abs=0.05)
+        assert observation[4] == pytest.approx(ego.action["steering"])  # δ in the observation
+        turning += abs(ego.action["steering"]) > 0.1
+    assert turning >= 3  # some episodes start inside a turn
+    # the default draws no exploring start: the first steps of a seeded episode do not change
+    default = gym.make("DACERF-Intersection-v0")
+    explored = gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 0.0})
+    assert np.array_equal(default.reset(seed=3)[0], explored.reset(seed=3)[0])
+    with pytest.raises(ValueError, match="reference_start_probability"):
+        gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 1.5})
+
+
 def test_env_pickled_by_an_earlier_version_steps_on():
     """A training checkpoint's env from before config keys were added: they take their defaults."""
     env = gym.make("DACERF-Intersection-v0")
     env.reset(seed=0)
     env.step(np.zeros(2, dtype=np.float32))
     unwrapped = env.unwrapped
-    for key in ("dynamic_penalty_discount", "stall_timeout", "stall_distance"):
+    for key in ("dynamic_penalty_discount", "stall_timeout", "stall_distance", "reference_start_probability"):
         del unwrapped.config[key]
-    del unwrapped._progress
+    del unwrapped._progress, unwrapped._start_command
     restored = pickle.loads(pickle.dumps(env))
     _, reward, *_ = restored.step(np.zeros(2, dtype=np.float32))
     assert np.isfinite(reward) and restored.unwrapped.config["stall_timeout"] == 0.0

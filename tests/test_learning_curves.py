@@ -85,3 +85,20 @@ def test_langevin_scale_reports_a_checkpoint(tmp_path, learning_curves, capsys):
     assert paper.removeprefix("paper: ") == normalised.removeprefix("normalised: ").split(" (a_B")[0]
     with pytest.raises(SystemExit):
         module.main([str(tmp_path)])
+
+
+def test_training_env_kwargs_apply_to_training_only(tmp_path, learning_curves):
+    """--train-env-kwargs: merged over --env-kwargs, config key by config key, in the training env only."""
+    from stable_baselines3 import SAC
+
+    shared = {"config": {"duration": 10}, "density": "sparse"}
+    training = {"config": {"reference_start_probability": 0.5}}
+    assert learning_curves.training_env_kwargs(shared, training) == {
+        "config": {"duration": 10, "reference_start_probability": 0.5},
+        "density": "sparse",
+    }
+    assert learning_curves.training_env_kwargs(shared, {}) == shared
+    settings = job(tmp_path, "sac", 100, env="DACERF-Intersection-v0", env_kwargs=shared, train_env_kwargs=training)
+    model = learning_curves.new_model(settings, SAC, {})
+    config = model.get_env().envs[0].unwrapped.config
+    assert config["duration"] == 10 and config["reference_start_probability"] == 0.5

@@ -15,7 +15,8 @@ two 8 m wide roads plus the whole junction box (the solid lines highway-env draw
 the corners are markings; the U-turn crosses them).
 Target speed from ``reference_speed_ranges`` of the route (straight 6-9 m/s, left 4-7, right 3-5,
 U-turn 3-4.5: the steering rate is limited to 0.25 rad/s); random start 20-40 m before the junction
-with small lateral and heading offsets. ``density`` sets the initial vehicle count and the spawn
+with small lateral and heading offsets (for training, ``reference_start_probability`` starts a share of the episodes
+on the path anywhere up to the exit lane: exploring starts). ``density`` sets the initial vehicle count and the spawn
 probability per step (sparse 5 / 0.03, normal 10 / 0.06 = highway-env's default rate of 0.6 per second,
 dense 15 / 0.12).
 
@@ -38,6 +39,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
 from sb3_dacerf.envs.driving.common.config import Rule, boolean, choice, interval, number
+from sb3_dacerf.envs.driving.common.reference import nominal_steering
 
 ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
 """Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
@@ -131,6 +133,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         "routes": _routes_rule,
         "reference_speed_ranges": _speed_ranges_rule,
         "clear_crashed_traffic": boolean(),
+        "reference_start_probability": number(0.0, 1.0),
         "right_of_way": choice(RIGHT_OF_WAY),
     }
     EXIT_DISTANCE = 25.0
@@ -156,6 +159,10 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 # ahead (traffic behind the ego yields to it); "priority", highway-env's lane priorities (the
                 # horizontal road first: crossing traffic never yields to the ego, which comes from a minor arm).
                 "right_of_way": "first_come",
+                # Training aid (exploring starts), 0 for evaluation: the probability that an episode starts on the
+                # reference path anywhere from 20 m before the junction to the exit lane, heading along the path
+                # with the steering of its curvature, instead of 20-40 m before the junction.
+                "reference_start_probability": 0.0,
             }
         )
         return config
@@ -197,12 +204,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         exit_lane = network.get_lane((f"il{exit_arm}", f"o{exit_arm}", 0))
         start = approach.length - rng.uniform(20.0, 40.0)
         self.reference_speed = float(rng.uniform(*config["reference_speed_ranges"][self.route]))
-        ego = self.action_type.vehicle_class(
-            self.road,
-            approach.position(start, rng.normal(0.0, 0.2)),
-            heading=approach.heading_at(start) + rng.normal(0.0, 0.02),
-            speed=self._start_speed(),
-        )
+        lateral, heading_offset, speed = rng.normal(0.0, 0.2), rng.normal(0.0, 0.02), self._start_speed()
         step = 0.5
         if self.route == "u_turn":
             left = network.get_lane(("ir0", "il1", 0))
@@ -224,6 +226,20 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             self.reference = ReferencePath.from_lanes(
                 [(approach, 0.0, approach.length), (turn, 0.0, turn.length), (exit_lane, 0.0, exit_lane.length)], step
             )
+        position, heading = approach.position(start, lateral), approach.heading_at(start) + heading_offset
+        steering = 0.0
+        if config["reference_start_probability"] > 0 and rng.uniform() < config["reference_start_probability"]:
+            # Exploring start: anywhere from 20 m before the junction to the start of the exit lane, on the reference
+            # path with the path's heading and the steering that follows its curvature.
+            end = self.reference.project(exit_lane.position(0.0, 0.0))[0]
+            points, headings, curvatures = self.reference.at(np.array([rng.uniform(approach.length - 20.0, end)]))
+            normal = np.array([-np.sin(headings[0]), np.cos(headings[0])])
+            position, heading = points[0] + lateral * normal, float(headings[0]) + heading_offset
+            limit = config["steering_range"]
+            steering = min(max(nominal_steering(float(curvatures[0]), self.action_type.vehicle_class.LENGTH), limit[0]), limit[1])
+        ego = self.action_type.vehicle_class(self.road, position, heading=heading, speed=speed)
+        ego.action["steering"] = steering
+        self._start_command = np.array([0.0, steering])
         self.controlled_vehicles = [ego]
         self.road.vehicles.append(ego)
         # Prevent collisions at the start, as highway-env does.

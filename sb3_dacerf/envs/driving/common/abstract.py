@@ -194,6 +194,8 @@ class PaperDrivingMixin(_HighwayEnv):
             acceleration_range=config["acceleration_range"],
             steering_range=config["steering_range"],
         )
+        # The command an episode starts with: zero, or the steering of a start inside a turn (reference_start_probability).
+        self.action_type.command = np.array(getattr(self, "_start_command", (0.0, 0.0)), dtype=np.float64)
         # highway-env rebuilds the spaces on every reset; keeping ours keeps any seed set on them.
         if self.observation_space is None or self.observation_space.shape != self.observation_type.space().shape:
             self.observation_space = self.observation_type.space()
@@ -203,6 +205,7 @@ class PaperDrivingMixin(_HighwayEnv):
     def _reset(self) -> None:
         self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
         self._episode_over = self._warned_step_after_end = False
+        self._start_command = np.zeros(2)  # _make_vehicles may set a start inside a turn's steering
         super()._reset()
         # The ego stops instead of reversing: the paper's task has no reverse gear.
         self.vehicle.MIN_SPEED = 0.0

@@ -8,6 +8,17 @@ import numpy as np
 from highway_env.road.lane import AbstractLane
 
 
+def nominal_steering(curvature: float, length: float) -> float:
+    """
+    Front-wheel angle [rad] with which highway-env's kinematic bicycle model drives a path of this curvature.
+
+    :param curvature: path curvature [1/m], signed like the heading's change
+    :param length: vehicle length [m] (the model's axles are at ± length / 2)
+    """
+    beta = math.asin(min(max(curvature * length / 2, -1.0), 1.0))
+    return math.atan(2.0 * math.tan(beta))
+
+
 class ReferencePath:
     """
     A reference path: a polyline sampled from highway-env lanes (or any curve), with arc-length lookups.

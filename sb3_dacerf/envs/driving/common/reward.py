@@ -32,6 +32,7 @@ import numpy as np
 from highway_env.vehicle.kinematics import Vehicle
 
 from sb3_dacerf.envs.driving.common.observation import Scene
+from sb3_dacerf.envs.driving.common.reference import nominal_steering
 
 REWARD_TERMS = (
     "tracking_lateral",
@@ -84,8 +85,7 @@ def reward_terms(
     huber_delta = config["huber_delta"]
     v_x, _, yaw_rate, acceleration, steering = scene.ego.tolist()
     dt = 1.0 / config["policy_frequency"]
-    beta_nominal = math.asin(min(max(scene.reference_curvature * ego.LENGTH / 2, -1.0), 1.0))
-    steering_nominal = math.atan(2.0 * math.tan(beta_nominal))
+    steering_nominal = nominal_steering(scene.reference_curvature, ego.LENGTH)
     acceleration_increment, steering_increment = applied_increment.tolist()
 
     safe_front = safe_space = safe_side = safe_rear = 0.0
