@@ -326,3 +326,16 @@ def test_standing_value_compares_standing_with_the_scripted_driver(capsys):
     assert "| right | 3 |" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         standing_value.main(["--gamma", "1"])
+
+
+def test_export_leaves_out_training_only_config(tmp_path, capsys):
+    """A run trained with exploring starts exports a driver evaluated from the scenario's usual starts."""
+    import gymnasium as gym
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    export = load_example("export_driver", BENCHMARKS)
+    config = {**SHORT, "reference_start_probability": 0.5}
+    venv = DummyVecEnv([lambda: gym.make("DACERF-Intersection-v0", config=config)])
+    env_id, env_kwargs = export.checkpoint_environment(tmp_path, {"venv": venv}, None, None)
+    assert env_id == "DACERF-Intersection-v0" and env_kwargs["config"] == SHORT
+    assert "training-only config key(s) ['reference_start_probability'] are left out" in capsys.readouterr().out
