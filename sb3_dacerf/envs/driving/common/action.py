@@ -5,7 +5,8 @@ The paper's incremental action on highway-env's kinematic bicycle model.
 [-4, 2.5] m/s³ and steering rate within ±0.25 rad/s). The increments are integrated into the commanded longitudinal
 acceleration ``a_x ∈ [-0.8, 0.8]`` m/s² and front-wheel steering angle ``δ ∈ [-0.571, 0.571]`` rad, which are exactly
 the ``acceleration`` (m/s²) and ``steering`` (front-wheel angle, rad) inputs of highway-env's kinematic bicycle model
-(``highway_env.vehicle.kinematics.Vehicle``). Both start at 0 on ``reset()``. The ego cannot reverse.
+(``highway_env.vehicle.kinematics.Vehicle``). Both start at 0 on ``reset()`` (an exploring start of the intersection,
+``reference_start_probability``, starts δ at the steering of the path's curvature). The ego cannot reverse.
 """
 
 from __future__ import annotations
