@@ -101,10 +101,6 @@ def drop_optimizer_state(model: Any) -> None:
             attribute.state.clear()
 
 
-TRAINING_ONLY_CONFIG = {"reference_start_probability"}
-"""Config keys that shape training episodes only (exploring starts): a driver is evaluated without them."""
-
-
 def checkpoint_environment(
     folder: Path, saved: dict[str, Any], env_id: str | None, env_kwargs: dict | None
 ) -> tuple[str, dict[str, Any]]:
@@ -126,7 +122,7 @@ def checkpoint_environment(
     if env_kwargs is None:
         env_kwargs = {k: v for k, v in (spec.kwargs if spec is not None else {}).items() if k != "render_mode"}
         config = env_kwargs.get("config") or {}
-        training_only = sorted(set(config) & TRAINING_ONLY_CONFIG)
+        training_only = sorted(set(config) & getattr(getattr(env, "unwrapped", None), "TRAINING_ONLY_CONFIG", frozenset()))
         if training_only:
             env_kwargs["config"] = {k: v for k, v in config.items() if k not in training_only}
             print(f"note: the training-only config key(s) {training_only} are left out of the exported metadata")

@@ -274,7 +274,7 @@ def test_env_pickled_by_an_earlier_version_steps_on():
     unwrapped = env.unwrapped
     for key in ("dynamic_penalty_discount", "stall_timeout", "stall_distance", "reference_start_probability"):
         del unwrapped.config[key]
-    del unwrapped._progress, unwrapped._start_command
+    del unwrapped._progress
     restored = pickle.loads(pickle.dumps(env))
     _, reward, *_ = restored.step(np.zeros(2, dtype=np.float32))
     assert np.isfinite(reward) and restored.unwrapped.config["stall_timeout"] == 0.0

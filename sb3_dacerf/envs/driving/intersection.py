@@ -136,6 +136,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         "reference_start_probability": number(0.0, 1.0),
         "right_of_way": choice(RIGHT_OF_WAY),
     }
+    TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset({"reference_start_probability"})
     EXIT_DISTANCE = 25.0
     """Distance driven into an exit lane that ends the episode [m] (highway-env's ``has_arrived``)."""
 
@@ -238,8 +239,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             limit = config["steering_range"]
             steering = min(max(nominal_steering(float(curvatures[0]), self.action_type.vehicle_class.LENGTH), limit[0]), limit[1])
         ego = self.action_type.vehicle_class(self.road, position, heading=heading, speed=speed)
-        ego.action["steering"] = steering
-        self._start_command = np.array([0.0, steering])
+        ego.action["steering"] = steering  # define_spaces() starts the steering command there
         self.controlled_vehicles = [ego]
         self.road.vehicles.append(ego)
         # Prevent collisions at the start, as highway-env does.

@@ -90,6 +90,8 @@ class PaperDrivingMixin(_HighwayEnv):
 
     reference: ReferencePath
     reference_speed: float
+    TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset()
+    """Config keys that shape training episodes only (e.g. exploring starts): a trained driver is evaluated without them."""
     _progress: deque[float]
     # Set by highway-env: None until the first reset / render
     observation_space: spaces.Space | None
@@ -194,8 +196,10 @@ class PaperDrivingMixin(_HighwayEnv):
             acceleration_range=config["acceleration_range"],
             steering_range=config["steering_range"],
         )
-        # The command an episode starts with: zero, or the steering of a start inside a turn (reference_start_probability).
-        self.action_type.command = np.array(getattr(self, "_start_command", (0.0, 0.0)), dtype=np.float64)
+        # The command an episode starts with: no acceleration and the ego's steering (zero, or the path's steering of
+        # an exploring start inside a turn, reference_start_probability).
+        if self.controlled_vehicles:
+            self.action_type.command[1] = self.controlled_vehicles[0].action["steering"]
         # highway-env rebuilds the spaces on every reset; keeping ours keeps any seed set on them.
         if self.observation_space is None or self.observation_space.shape != self.observation_type.space().shape:
             self.observation_space = self.observation_type.space()
@@ -205,7 +209,6 @@ class PaperDrivingMixin(_HighwayEnv):
     def _reset(self) -> None:
         self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
         self._episode_over = self._warned_step_after_end = False
-        self._start_command = np.zeros(2)  # _make_vehicles may set a start inside a turn's steering
         super()._reset()
         # The ego stops instead of reversing: the paper's task has no reverse gear.
         self.vehicle.MIN_SPEED = 0.0
