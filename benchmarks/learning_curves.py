@@ -18,6 +18,11 @@ Environment ids registered by ``sb3_dacerf`` (driving, DMC) work too; for enviro
 ``is_success`` / ``collision`` / ``off_road`` the arrival, collision and off-road rates of the evaluation
 episodes are reported as well. ``--env-kwargs`` go to ``gym.make`` of every env, ``--train-env-kwargs`` to the
 training env's only (a training aid such as the intersection's exploring starts, with evaluations left as they are).
+
+``--n-envs N`` trains on N copies of the environment stepped together (SB3's ``DummyVecEnv``, in the same process):
+each rollout step collects N transitions and is followed by the variant's gradient steps (one by default), so a run
+of ``--timesteps`` transitions takes ``--timesteps / N`` gradient steps, N transitions per gradient step; steps,
+evaluations and checkpoints are counted in transitions.
 """
 
 import argparse
@@ -189,15 +194,15 @@ def training_env_kwargs(env_kwargs: dict[str, Any], train_env_kwargs: dict[str, 
 
 def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> Any:
     """
-    A fresh model of one variant on its training environment (VecNormalize'd with ``job["vec_normalize"]``, rewards
-    too with ``job["normalize_reward"]``).
+    A fresh model of one variant on its training environment: ``job["n_envs"]`` copies (default 1) in a
+    ``DummyVecEnv``, VecNormalize'd with ``job["vec_normalize"]``, rewards too with ``job["normalize_reward"]``.
     """
     import gymnasium as gym
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     env_kwargs = training_env_kwargs(job["env_kwargs"], job.get("train_env_kwargs") or {})
-    env = DummyVecEnv([lambda: gym.make(job["env"], **env_kwargs)])
+    env = DummyVecEnv([lambda: gym.make(job["env"], **env_kwargs)] * job.get("n_envs", 1))
     if job["vec_normalize"] or job.get("normalize_reward"):
         env = VecNormalize(env, norm_obs=True, norm_reward=bool(job.get("normalize_reward")))
     kwargs = dict(kwargs)
@@ -411,6 +416,13 @@ def main() -> None:
     )
     parser.add_argument("--learning-starts", type=int, help="override every variant's learning_starts")
     parser.add_argument(
+        "--n-envs",
+        type=int,
+        default=1,
+        help="training environments stepped together: N transitions per rollout step, then the variant's gradient "
+        "steps (use another --out); --eval-freq and --checkpoint-freq must be multiples of N",
+    )
+    parser.add_argument(
         "--vec-normalize",
         action="store_true",
         help="normalise observations with VecNormalize(norm_obs=True, norm_reward=False), statistics saved in the checkpoints",
@@ -433,6 +445,13 @@ def main() -> None:
         parser.error(f"unknown variants {unknown}: choose from {', '.join(VARIANTS)} (or use --report-only for older runs)")
     if args.quick:
         args.seeds, args.timesteps, args.eval_freq, args.eval_episodes = 2, 3_000, 1_000, 3
+    if args.n_envs < 1:
+        parser.error(f"--n-envs must be at least 1, got {args.n_envs}")
+    frequencies = (("--eval-freq", args.eval_freq), ("--checkpoint-freq", args.checkpoint_freq))
+    uneven = [f"{name} {value}" for name, value in frequencies if value % args.n_envs]
+    if uneven:
+        # Steps advance by n_envs transitions: a frequency that is not a multiple would never be hit exactly
+        parser.error(f"{', '.join(uneven)} not a multiple of --n-envs {args.n_envs}: choose multiples of it")
 
     out = Path(args.out or ("benchmarks/results/quick" if args.quick else "benchmarks/results"))
     out.mkdir(parents=True, exist_ok=True)
@@ -461,6 +480,7 @@ def main() -> None:
             learning_starts=args.learning_starts,
             vec_normalize=args.vec_normalize,
             normalize_reward=args.normalize_reward,
+            n_envs=args.n_envs,
         )
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants

@@ -102,3 +102,29 @@ def test_training_env_kwargs_apply_to_training_only(tmp_path, learning_curves):
     model = learning_curves.new_model(settings, SAC, {})
     config = model.get_env().envs[0].unwrapped.config
     assert config["duration"] == 10 and config["reference_start_probability"] == 0.5
+
+
+def test_several_training_envs_share_each_gradient_step(tmp_path, learning_curves):
+    """--n-envs 2: two transitions per rollout step and one gradient step after it; resuming gives the same run."""
+    from stable_baselines3 import SAC
+
+    settings = dict(n_envs=2, learning_starts=100)
+    straight = learning_curves.run_one(job(tmp_path / "straight", "sac", 300, **settings))
+    assert [row["timesteps"] for row in straight] == [100, 200, 300]
+    folder = learning_curves.checkpoint_dir(tmp_path / "straight", "Pendulum-v1", "sac", 3)
+    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
+    assert model.get_env().num_envs == 2 and model.replay_buffer.n_envs == 2
+    # 300 transitions, 100 of them before learning starts: (300 - 100) / 2 rollout steps of one gradient step each
+    assert model.num_timesteps == 300 and model._n_updates == 100
+    learning_curves.run_one(job(tmp_path / "resumed", "sac", 200, **settings))
+    resumed = learning_curves.run_one(job(tmp_path / "resumed", "sac", 300, **settings))
+    assert [row["mean_return"] for row in resumed] == [row["mean_return"] for row in straight]
+
+
+def test_n_envs_must_divide_the_evaluation_and_checkpoint_frequencies(tmp_path, learning_curves, monkeypatch, capsys):
+    argv = ["learning_curves.py", "--n-envs", "3", "--eval-freq", "1000", "--out", str(tmp_path)]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit):
+        learning_curves.main()
+    assert "--eval-freq 1000, --checkpoint-freq 5000 not a multiple of --n-envs 3" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())  # refused before anything is written
