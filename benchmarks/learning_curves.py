@@ -60,6 +60,10 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-tuned": ("DACERF", dict(ent_coef=0.0, flow_matching_weights="q_scale", action_noise_std=0.1)),
     "dacer": ("DACER", {}),
     "sac": ("SAC", {}),
+    # a discount whose horizon 1 / (1 - gamma) = 500 steps covers a 400-step intersection episode (the driving
+    # rewards are audited as undiscounted episode totals)
+    "sac-gamma998": ("SAC", dict(gamma=0.998)),
+    "dacerf-gradnorm-gamma998": ("DACERF", dict(langevin_normalize_gradient=True, gamma=0.998)),
     "td3": ("TD3", {}),
     "tqc": ("TQC", {}),
     "crossq": ("CrossQ", {}),
