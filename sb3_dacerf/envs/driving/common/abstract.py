@@ -148,6 +148,9 @@ class PaperDrivingMixin(_HighwayEnv):
                 "rho_rear": 0.0,
                 "rho_boundary": 20.0,
                 "safe_time_headway": 1.0,  # Δt_safe [s]
+                # False: the paper's constant target speed per episode; True: capped by what the vehicle ahead allows
+                # (observation.traffic_following_speed)
+                "reference_speed_follows_traffic": False,
                 "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
                 "boundary_threshold": 0.5,  # d_thresh [m]
                 # Severe events (collision, leaving the road): "dynamic" (see _severe_penalty) or a constant (paper: 200)
@@ -329,7 +332,7 @@ class PaperDrivingMixin(_HighwayEnv):
             self._current_scene(),
             self.vehicle,
             self.action_type.applied_increment,
-            self.reference_speed,
+            self._current_scene().reference_speed,
             self._severe_penalty(),
             self._stalled(),
         )
@@ -365,7 +368,8 @@ class PaperDrivingMixin(_HighwayEnv):
         crashed, off_road, stalled = bool(self.vehicle.crashed), bool(scene.road_clearance < 0), self._stalled()
         return {
             "speed": float(self.vehicle.speed),
-            "reference_speed": float(self.reference_speed),
+            "reference_speed": float(scene.reference_speed),
+            "target_speed": float(self.reference_speed),
             "lateral_error": float(scene.lateral_error),
             "crashed": crashed,
             "collision": crashed,

@@ -150,6 +150,7 @@ COMMON_RULES: dict[str, Rule] = {
     "steering_range": interval(-1.5, 1.5, contains_zero=True),  # [rad] the bicycle model needs |δ| < π/2
     "huber_delta": number(0, low_open=True),
     "safe_time_headway": number(0, low_open=True),
+    "reference_speed_follows_traffic": boolean(),
     "safe_space_margin": pair(0.0),
     "boundary_threshold": number(0),
     "collision_penalty": severe_penalty,

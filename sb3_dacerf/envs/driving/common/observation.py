@@ -51,6 +51,46 @@ class Scene:
     """Distance from the ego centre to the road edge [m], negative off the road."""
     reference_progress: float = 0.0
     """Arc length of the ego's projection on its reference path [m]."""
+    reference_speed: float = 0.0
+    """The speed [m/s] the waypoints are spaced by and the speed-tracking term asks for at this step: the episode's
+    target speed, or with ``reference_speed_follows_traffic`` the lower speed the vehicle ahead allows."""
+
+
+def traffic_following_speed(
+    target_speed: float,
+    vehicles: np.ndarray,
+    ego_length: float,
+    ego_width: float,
+    deceleration: float,
+    time_headway: float,
+) -> float:
+    """
+    The target speed capped by what the nearest vehicle ahead in the ego's corridor allows.
+
+    The cap is the highest speed from which braking at ``deceleration`` still closes on that vehicle's speed before
+    the gap shrinks to its ``time_headway`` distance: ``v_lead + sqrt(2 b max(gap - v_lead Δt_safe, 0))``. It equals
+    the lead vehicle's speed at the safe-following distance and rises with the gap, so a learner rewarded for
+    tracking it starts braking early enough for the paper's limited deceleration (0.8 m/s²: 9 m/s of closing speed
+    take 50 m). Vehicles beyond the perception distance leave the target speed as it is.
+
+    :param target_speed: the episode's target speed [m/s]
+    :param vehicles: the scene's vehicles, ego frame, ``[x, y, cos φ, sin φ, v, length, width]`` rows
+    :param ego_length: the ego's length [m]
+    :param ego_width: the ego's width [m]
+    :param deceleration: the braking the cap assumes, > 0 [m/s²]
+    :param time_headway: the following distance the cap keeps, in seconds of the lead vehicle's speed [s]
+    :return: the reference speed [m/s], at most ``target_speed`` and never negative
+    """
+    if not len(vehicles):
+        return target_speed
+    x, y, cos_phi, speed, lengths, widths = (vehicles[:, i] for i in (0, 1, 2, 4, 5, 6))
+    ahead = (x > 0) & (np.abs(y) < (ego_width + widths) / 2)
+    if not ahead.any():
+        return target_speed
+    gaps = x[ahead] - (ego_length + lengths[ahead]) / 2
+    lead_speeds = np.maximum(speed[ahead] * cos_phi[ahead], 0.0)
+    caps = lead_speeds + np.sqrt(2 * deceleration * np.maximum(gaps - lead_speeds * time_headway, 0.0))
+    return float(min(target_speed, caps.min()))
 
 
 def observe_scene(env: PaperDrivingMixin) -> Scene:
@@ -74,14 +114,6 @@ def observe_scene(env: PaperDrivingMixin) -> Scene:
     cos_h, sin_h = math.cos(ego.heading), math.sin(ego.heading)
     to_ego_frame_t = np.array([[cos_h, -sin_h], [sin_h, cos_h]])
 
-    s, lateral = env.reference.project(ego.position)
-    step = env.reference_speed * config["reference_waypoint_interval"]
-    points, headings, curvatures = env.reference.at(s + step * np.arange(config["reference_waypoints"]))
-    relative_headings = headings - ego.heading
-    waypoints = np.empty((len(points), WAYPOINT_FEATURES))
-    waypoints[:, :2] = (points - ego.position) @ to_ego_frame_t
-    waypoints[:, 2], waypoints[:, 3] = np.cos(relative_headings), np.sin(relative_headings)
-
     vehicles = np.zeros((0, 7))
     others = [v for v in env.road.vehicles if v is not ego]
     if others:
@@ -96,6 +128,20 @@ def observe_scene(env: PaperDrivingMixin) -> Scene:
         vehicles = np.empty((len(data), 7))
         vehicles[:, :2] = data[:, :2] @ to_ego_frame_t
         vehicles[:, 2], vehicles[:, 3], vehicles[:, 4:] = np.cos(relative), np.sin(relative), data[:, 3:]
+
+    s, lateral = env.reference.project(ego.position)
+    reference_speed = env.reference_speed
+    if config["reference_speed_follows_traffic"]:
+        reference_speed = traffic_following_speed(
+            reference_speed, vehicles, ego.LENGTH, ego.WIDTH, -config["acceleration_range"][0], config["safe_time_headway"]
+        )
+    step = reference_speed * config["reference_waypoint_interval"]
+    points, headings, curvatures = env.reference.at(s + step * np.arange(config["reference_waypoints"]))
+    relative_headings = headings - ego.heading
+    waypoints = np.empty((len(points), WAYPOINT_FEATURES))
+    waypoints[:, :2] = (points - ego.position) @ to_ego_frame_t
+    waypoints[:, 2], waypoints[:, 3] = np.cos(relative_headings), np.sin(relative_headings)
+
     return Scene(
         ego=ego_state,
         waypoints=waypoints,
@@ -105,6 +151,7 @@ def observe_scene(env: PaperDrivingMixin) -> Scene:
         reference_curvature=float(curvatures[0]),
         road_clearance=env._road_clearance(ego.position),
         reference_progress=s,
+        reference_speed=reference_speed,
     )
 
 
