@@ -339,6 +339,53 @@ def test_intersection_routes(route):
     assert terminated and info["is_success"] and info["route"] == route
 
 
+def test_steering_feedforward_drives_a_turn_with_zero_actions():
+    """With the feedforward a zero action follows the path's curvature within the steering-rate bounds."""
+    env = gym.make("DACERF-Intersection-v0", density="sparse", config={"routes": ["right"], "steering_feedforward": True})
+    unwrapped = env.unwrapped
+    obs, info = env.reset(seed=0)
+    action_type = unwrapped.action_type
+    assert action_type.steering_residual == pytest.approx(0.0, abs=1e-6)  # straight approach: nothing to add yet
+    steerings, done = [], False
+    while not done:
+        obs, _reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
+        assert abs(action_type.applied_increment[1]) <= 0.025 + 1e-12
+        assert obs[4] == pytest.approx(action_type.command[1], abs=1e-6)  # the observation has the applied steering
+        steerings.append(action_type.command[1])
+        done = terminated or truncated
+    assert info["is_success"] and not info["collision"]
+    assert max(np.abs(steerings)) > 0.1  # it did steer
+    # Without it the same zero actions drive straight on and never reach the right exit.
+    env = gym.make("DACERF-Intersection-v0", density="sparse", config={"routes": ["right"]})
+    env.reset(seed=0)
+    done = False
+    while not done:
+        _obs, _reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
+        done = terminated or truncated
+    assert not info["is_success"]
+
+
+def test_steering_feedforward_adds_the_policy_residual():
+    env = make("DACERF-Intersection-v0", routes=["straight"], steering_feedforward=True)
+    env.reset(seed=0)
+    action_type = env.unwrapped.action_type
+    for _ in range(4):
+        env.step(np.array([0.0, 0.025], dtype=np.float32))
+    # Straight approach, feedforward 0: the residual and the steering integrate Δδ as without the feedforward.
+    assert action_type.steering_residual == pytest.approx(0.1)
+    assert action_type.command[1] == pytest.approx(0.1)
+
+
+def test_steering_feedforward_changes_nothing_on_the_straight_highway():
+    def drive(**config):
+        env = make("DACERF-Multilane-v0", **config)
+        env.reset(seed=5)
+        rng = np.random.default_rng(0)
+        return [env.step((rng.uniform(-1, 1, 2) * [0.2, 0.02]).astype(np.float32))[0] for _ in range(20)]
+
+    np.testing.assert_allclose(drive(steering_feedforward=True), drive(), atol=1e-9)
+
+
 def test_intersection_wrong_exit_is_no_success():
     env = make("DACERF-Intersection-v0", routes=["left"])
     env.reset(seed=0)

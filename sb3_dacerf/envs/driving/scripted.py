@@ -2,7 +2,8 @@
 A scripted driver for the paper's driving scenarios: a baseline to compare learnt policies with, and the "competent
 driver" of the reward audit (``benchmarks/driving_reward_audit.py``).
 
-It reads only the observation (and the env's config for the scales, the action bounds and the ego's length): pure
+It reads only the observation (and the env's config for the scales, the action bounds and the ego's length, and with
+the env's ``steering_feedforward`` the feedforward it steers on top of): pure
 pursuit on the observed reference waypoints, a speed controller towards the target speed encoded in the waypoint
 spacing, braking for the nearest vehicle in its corridor ahead and, with ``yield_to_crossing=True``, braking for
 any vehicle whose constant-velocity prediction meets the ego's path within ``horizon`` seconds (crossing and
@@ -51,6 +52,7 @@ class ScriptedDriver:
         self.length = unwrapped.vehicle.LENGTH
         self.yield_to_crossing = yield_to_crossing
         self.horizon, self.conflict_distance = horizon, conflict_distance
+        self._unwrapped = unwrapped
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """
@@ -80,6 +82,11 @@ class ScriptedDriver:
             desired_acceleration = -1.0
 
         increment = np.array([desired_acceleration - acceleration, desired_steering - steering])
+        action_type = self._unwrapped.action_type
+        if action_type.steering_feedforward is not None:
+            # With the env's steering feedforward Δδ moves the residual on top of it: aim the sum at the steering wanted.
+            feedforward = self._unwrapped._steering_feedforward()
+            increment[1] = desired_steering - feedforward - action_type.steering_residual
         return np.clip(increment, self.low, self.high).astype(np.float32)
 
     def _conflict(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float) -> bool:

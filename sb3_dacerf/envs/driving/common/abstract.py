@@ -18,7 +18,7 @@ from highway_env.envs.common.graphics import EnvViewer
 from sb3_dacerf.envs.driving.common.action import IncrementalAction
 from sb3_dacerf.envs.driving.common.config import COMMON_RULES, Rule, check_config
 from sb3_dacerf.envs.driving.common.observation import EgoFrameObservation, Scene, observe_scene
-from sb3_dacerf.envs.driving.common.reference import ReferencePath
+from sb3_dacerf.envs.driving.common.reference import ReferencePath, nominal_steering
 from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, reward_terms
 
 if TYPE_CHECKING:
@@ -151,6 +151,10 @@ class PaperDrivingMixin(_HighwayEnv):
                 # False: the paper's constant target speed per episode; True: capped by what the vehicle ahead allows
                 # (observation.traffic_following_speed)
                 "reference_speed_follows_traffic": False,
+                # False: the paper's action; True: Δδ steers on top of the nominal steering of the path
+                # steering_feedforward_preview [s] of travel ahead (action.IncrementalAction)
+                "steering_feedforward": False,
+                "steering_feedforward_preview": 0.5,
                 "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
                 "boundary_threshold": 0.5,  # d_thresh [m]
                 # Severe events (collision, leaving the road): "dynamic" (see _severe_penalty) or a constant (paper: 200)
@@ -203,6 +207,10 @@ class PaperDrivingMixin(_HighwayEnv):
         # an exploring start inside a turn, reference_start_probability).
         if self.controlled_vehicles:
             self.action_type.command[1] = self.controlled_vehicles[0].action["steering"]
+            if config["steering_feedforward"]:
+                # The residual that keeps the steering the episode starts with.
+                self.action_type.steering_feedforward = self._steering_feedforward()
+                self.action_type.steering_residual = float(self.action_type.command[1]) - self.action_type.steering_feedforward
         # highway-env rebuilds the spaces on every reset; keeping ours keeps any seed set on them.
         if self.observation_space is None or self.observation_space.shape != self.observation_type.space().shape:
             self.observation_space = self.observation_type.space()
@@ -217,6 +225,16 @@ class PaperDrivingMixin(_HighwayEnv):
         self.vehicle.MIN_SPEED = 0.0
         self.scene = observe_scene(self)
         self._start_stall_history()
+
+    def _steering_feedforward(self) -> float:
+        """
+        The nominal steering [rad] of the reference path ``steering_feedforward_preview`` seconds of travel ahead of
+        the ego's projection (at its current speed): what the kinematic bicycle model needs to follow the path there.
+        """
+        ego = self.vehicle
+        s, _ = self.reference.project(ego.position)
+        _, _, curvatures = self.reference.at(np.array([s + self.config["steering_feedforward_preview"] * ego.speed]))
+        return nominal_steering(float(curvatures[0]), ego.LENGTH)
 
     def _start_stall_history(self) -> None:
         """The ego's progress along its reference over the last ``stall_timeout`` seconds, from the current scene."""
@@ -245,6 +263,8 @@ class PaperDrivingMixin(_HighwayEnv):
             )
             self._warned_step_after_end = True
         self.time += 1 / self.config["policy_frequency"]
+        if self.config["steering_feedforward"]:
+            self.action_type.steering_feedforward = self._steering_feedforward()
         self._simulate(action)
         self.scene = observe_scene(self)
         self._progress.append(self.scene.reference_progress)

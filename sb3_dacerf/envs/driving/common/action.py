@@ -7,6 +7,11 @@ acceleration ``a_x ∈ [-0.8, 0.8]`` m/s² and front-wheel steering angle ``δ �
 the ``acceleration`` (m/s²) and ``steering`` (front-wheel angle, rad) inputs of highway-env's kinematic bicycle model
 (``highway_env.vehicle.kinematics.Vehicle``). Both start at 0 on ``reset()`` (an exploring start of the intersection,
 ``reference_start_probability``, starts δ at the steering of the path's curvature). The ego cannot reverse.
+
+With a steering feedforward (the env's ``steering_feedforward`` config key; ``steering_feedforward`` set before each
+``act``), ``Δδ`` integrates a steering *residual* instead, and δ moves towards ``residual + feedforward`` (the
+nominal steering of the path ahead) at most by the steering-rate bounds per step: a zero action then follows the
+path's curvature, and the policy learns the corrections.
 """
 
 from __future__ import annotations
@@ -49,6 +54,10 @@ class IncrementalAction(ContinuousAction):
         self.command_high = np.array([acceleration_range[1], steering_range[1]])
         self.command = np.zeros(2)  # integrated [a_x, δ]
         self.applied_increment = np.zeros(2)  # increment actually applied after clipping, for the comfort terms
+        self.steering_feedforward: float | None = None
+        """Nominal steering [rad] of the path ahead for the next ``act``; ``None``: no feedforward (the paper's action)."""
+        self.steering_residual = 0.0
+        """With a feedforward: the integrated ``Δδ``, which δ follows on top of the feedforward [rad]."""
 
     def space(self) -> spaces.Box:
         return spaces.Box(self.increment_low.astype(np.float32), self.increment_high.astype(np.float32), dtype=np.float32)
@@ -80,6 +89,12 @@ class IncrementalAction(ContinuousAction):
     def act(self, action: np.ndarray) -> None:
         increment = np.clip(np.asarray(action, dtype=np.float64), self.increment_low, self.increment_high)
         command = np.clip(self.command + increment, self.command_low, self.command_high)
+        if self.steering_feedforward is not None:
+            low, high = self.command_low[1], self.command_high[1]
+            self.steering_residual = min(max(self.steering_residual + increment[1], low), high)
+            target = min(max(self.steering_residual + self.steering_feedforward, low), high)
+            # The steering-rate bounds hold for the steering actually applied, feedforward included.
+            command[1] = self.command[1] + min(max(target - self.command[1], self.increment_low[1]), self.increment_high[1])
         self.applied_increment = command - self.command
         self.command = command
         self.controlled_vehicle.act({"acceleration": float(command[0]), "steering": float(command[1])})

@@ -151,6 +151,8 @@ COMMON_RULES: dict[str, Rule] = {
     "huber_delta": number(0, low_open=True),
     "safe_time_headway": number(0, low_open=True),
     "reference_speed_follows_traffic": boolean(),
+    "steering_feedforward": boolean(),
+    "steering_feedforward_preview": number(0),
     "safe_space_margin": pair(0.0),
     "boundary_threshold": number(0),
     "collision_penalty": severe_penalty,
