@@ -339,6 +339,46 @@ def test_intersection_routes(route):
     assert terminated and info["is_success"] and info["route"] == route
 
 
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_normalized_action_keeps_the_increment_bounds_with_zero_at_the_centre(env_id):
+    env = make(env_id, normalized_action=True)
+    env.reset(seed=0)
+    assert env.action_space == gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+    action_type = env.unwrapped.action_type
+    for action, increment in [
+        ([1, 1], PAPER_INCREMENT_HIGH),
+        ([-1, -1], PAPER_INCREMENT_LOW),
+        ([0, 0], [0, 0]),
+        ([0.5, -0.5], [0.125, -0.0125]),
+        ([3, -3], PAPER_INCREMENT_HIGH * [1, -1]),
+    ]:
+        np.testing.assert_allclose(action_type.to_increment(np.array(action, dtype=float)), increment, atol=1e-12)
+        np.testing.assert_allclose(
+            action_type.to_increment(action_type.to_action(np.array(increment, dtype=float))), increment, atol=1e-12
+        )
+    previous = action_type.command.copy()
+    env.step(np.array([-1.0, 0.4], dtype=np.float32))
+    np.testing.assert_allclose(action_type.command - previous, [-0.4, 0.01], atol=1e-12)
+    # The centre of the raw box is a braking increment; the centre of the normalised one is none.
+    raw = make(env_id).action_space
+    assert (raw.low + raw.high)[0] / 2 == pytest.approx(-0.075)
+
+
+def test_scripted_driver_drives_the_same_with_normalized_actions():
+    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+    def drive(**config):
+        env = make("DACERF-Intersection-v0", duration=8, **config)
+        obs, _ = env.reset(seed=2)
+        driver, commands = ScriptedDriver(env), []
+        for _ in range(40):
+            obs, *_ = env.step(driver(obs))
+            commands.append(env.unwrapped.action_type.command.copy())
+        return np.array(commands)
+
+    np.testing.assert_allclose(drive(normalized_action=True), drive(), atol=1e-6)
+
+
 def test_steering_feedforward_drives_a_turn_with_zero_actions():
     """With the feedforward a zero action follows the path's curvature within the steering-rate bounds."""
     env = gym.make("DACERF-Intersection-v0", density="sparse", config={"routes": ["right"], "steering_feedforward": True})

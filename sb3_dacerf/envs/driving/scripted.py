@@ -48,7 +48,6 @@ class ScriptedDriver:
         self.position_scale, self.speed_scale = config["position_scale"], config["speed_scale"]
         self.n_waypoints = config["reference_waypoints"]
         self.waypoint_interval = config["reference_waypoint_interval"]
-        self.low, self.high = env.action_space.low, env.action_space.high
         self.length = unwrapped.vehicle.LENGTH
         self.yield_to_crossing = yield_to_crossing
         self.horizon, self.conflict_distance = horizon, conflict_distance
@@ -87,7 +86,7 @@ class ScriptedDriver:
             # With the env's steering feedforward Δδ moves the residual on top of it: aim the sum at the steering wanted.
             feedforward = self._unwrapped._steering_feedforward()
             increment[1] = desired_steering - feedforward - action_type.steering_residual
-        return np.clip(increment, self.low, self.high).astype(np.float32)
+        return action_type.to_action(increment).astype(np.float32)
 
     def _conflict(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float) -> bool:
         """Whether a vehicle's constant-velocity prediction comes within ``conflict_distance`` of the ego's path."""

@@ -154,6 +154,8 @@ class PaperDrivingMixin(_HighwayEnv):
                 # False: the paper's action; True: Δδ steers on top of the nominal steering of the path
                 # steering_feedforward_preview [s] of travel ahead (action.IncrementalAction)
                 "steering_feedforward": False,
+                # False: the paper's raw increment bounds as the action space; True: Box(-1, 1), zero at its centre
+                "normalized_action": False,
                 "steering_feedforward_preview": 0.5,
                 "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
                 "boundary_threshold": 0.5,  # d_thresh [m]
@@ -202,6 +204,7 @@ class PaperDrivingMixin(_HighwayEnv):
             steering_increment_range=config["steering_increment_range"],
             acceleration_range=config["acceleration_range"],
             steering_range=config["steering_range"],
+            normalized=config["normalized_action"],
         )
         # The command an episode starts with: no acceleration and the ego's steering (zero, or the path's steering of
         # an exploring start inside a turn, reference_start_probability).

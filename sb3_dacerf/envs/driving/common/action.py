@@ -12,6 +12,12 @@ With a steering feedforward (the env's ``steering_feedforward`` config key; ``st
 ``act``), ``Δδ`` integrates a steering *residual* instead, and δ moves towards ``residual + feedforward`` (the
 nominal steering of the path ahead) at most by the steering-rate bounds per step: a zero action then follows the
 path's curvature, and the policy learns the corrections.
+
+With ``normalized=True`` (the env's ``normalized_action`` config key) the action space is ``Box(-1, 1, (2,))`` and an
+action component ``u`` is the increment ``u · high`` for ``u ≥ 0`` and ``u · |low|`` for ``u < 0``: the same bounds,
+with the zero increment at the centre of the box. With the raw bounds the centre is ``Δa_x = -0.075`` m/s² per step
+(``[-0.4, 0.25]`` is not symmetric), so a policy whose output sits at the centre of its box, as SB3's policies do
+before they learn, brakes to a standstill.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ class IncrementalAction(ContinuousAction):
     :param steering_increment_range: bounds of Δδ per policy step [rad]
     :param acceleration_range: bounds of the integrated a_x [m/s²]
     :param steering_range: bounds of the integrated δ [rad]
+    :param normalized: actions in ``[-1, 1]``, scaled to the increment bounds on each side of zero
     """
 
     def __init__(
@@ -45,6 +52,7 @@ class IncrementalAction(ContinuousAction):
         steering_increment_range: tuple[float, float] = (-0.025, 0.025),
         acceleration_range: tuple[float, float] = (-0.8, 0.8),
         steering_range: tuple[float, float] = (-0.571, 0.571),
+        normalized: bool = False,
         **kwargs,
     ) -> None:
         super().__init__(env, acceleration_range=acceleration_range, steering_range=steering_range)
@@ -52,6 +60,7 @@ class IncrementalAction(ContinuousAction):
         self.increment_high = np.array([acceleration_increment_range[1], steering_increment_range[1]])
         self.command_low = np.array([acceleration_range[0], steering_range[0]])
         self.command_high = np.array([acceleration_range[1], steering_range[1]])
+        self.normalized = normalized
         self.command = np.zeros(2)  # integrated [a_x, δ]
         self.applied_increment = np.zeros(2)  # increment actually applied after clipping, for the comfort terms
         self.steering_feedforward: float | None = None
@@ -60,7 +69,26 @@ class IncrementalAction(ContinuousAction):
         """With a feedforward: the integrated ``Δδ``, which δ follows on top of the feedforward [rad]."""
 
     def space(self) -> spaces.Box:
+        if self.normalized:
+            return spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         return spaces.Box(self.increment_low.astype(np.float32), self.increment_high.astype(np.float32), dtype=np.float32)
+
+    def to_increment(self, action: np.ndarray) -> np.ndarray:
+        """The increments ``[Δa_x, Δδ]`` an action asks for, clipped to their bounds."""
+        action = np.asarray(action, dtype=np.float64)
+        if self.normalized:
+            action = np.clip(action, -1.0, 1.0)
+            return np.where(action >= 0, action * self.increment_high, -action * self.increment_low)
+        return np.clip(action, self.increment_low, self.increment_high)
+
+    def to_action(self, increment: np.ndarray) -> np.ndarray:
+        """The action that asks for the increments ``[Δa_x, Δδ]`` (clipped to their bounds); inverse of ``to_increment``."""
+        increment = np.clip(np.asarray(increment, dtype=np.float64), self.increment_low, self.increment_high)
+        if self.normalized:
+            # Bounds of 0 on one side give no increment on that side: their zero divisor is never used.
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return np.where(increment >= 0, increment / self.increment_high, increment / -self.increment_low)
+        return increment
 
     def check(self, action: np.ndarray) -> np.ndarray:
         """
@@ -87,7 +115,7 @@ class IncrementalAction(ContinuousAction):
         return array
 
     def act(self, action: np.ndarray) -> None:
-        increment = np.clip(np.asarray(action, dtype=np.float64), self.increment_low, self.increment_high)
+        increment = self.to_increment(action)
         command = np.clip(self.command + increment, self.command_low, self.command_high)
         if self.steering_feedforward is not None:
             low, high = self.command_low[1], self.command_high[1]

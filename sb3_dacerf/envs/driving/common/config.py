@@ -152,6 +152,7 @@ COMMON_RULES: dict[str, Rule] = {
     "safe_time_headway": number(0, low_open=True),
     "reference_speed_follows_traffic": boolean(),
     "steering_feedforward": boolean(),
+    "normalized_action": boolean(),
     "steering_feedforward_preview": number(0),
     "safe_space_margin": pair(0.0),
     "boundary_threshold": number(0),
