@@ -5,6 +5,7 @@ collision and off-road rates and mean episode length over N seeded, deterministi
     python examples/evaluate_driving.py driving_multilane.zip --episodes 20
     python examples/evaluate_driving.py model.zip --env intersection --algo sac --vec-normalize stats.pkl
     python examples/evaluate_driving.py --scripted --env multilane --episodes 50   # the scripted reference driver
+    python examples/evaluate_driving.py --idle --env intersection --episodes 50    # zero increments: the floor
 
 A model saved by ``examples/train_driving.py --save NAME`` comes with ``NAME_<scenario>.json`` (env id, density,
 config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario>_vecnormalize.pkl``: both are
@@ -240,6 +241,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--scripted", action="store_true", help="evaluate the scripted reference driver instead of a model (needs --env)"
     )
+    parser.add_argument(
+        "--idle",
+        action="store_true",
+        help="evaluate zero increments (the start speed and steering held, steering_feedforward's path if set) "
+        "instead of a model (needs --env): the floor a trained driver must beat",
+    )
     parser.add_argument("--env", choices=list(SCENARIOS), help="scenario (default: the one the model was trained on)")
     parser.add_argument("--algo", choices=["dacerf", "sac"], help="model class (default: from the metadata, else dacerf)")
     parser.add_argument("--vec-normalize", help="VecNormalize statistics .pkl (default: the one saved beside the model)")
@@ -250,19 +257,31 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--force", action="store_true", help="evaluate on another scenario than the model was trained on")
     args = parser.parse_args(argv)
 
-    if args.scripted:
+    if args.scripted and args.idle:
+        parser.error("--scripted and --idle are two baselines: pass one of them")
+    if args.scripted or args.idle:
+        name = "--scripted" if args.scripted else "--idle"
         if args.model or not args.env:
-            parser.error("--scripted evaluates the scripted driver: pass --env multilane or --env intersection and no model")
+            parser.error(f"{name} evaluates a baseline driver: pass --env multilane or --env intersection and no model")
         env_id, density = SCENARIOS[args.env], args.density or "normal"
         env = gym.make(env_id, density=density, config=args.config or {})
-        print(f"ScriptedDriver; {env_id} ({density}), seeds {args.seed}-{args.seed + args.episodes - 1}")
-        from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+        if args.scripted:
+            from sb3_dacerf.envs.driving.scripted import ScriptedDriver
 
-        results = evaluate(ScriptedDriver(env), env, args.episodes, args.seed)
+            act: Callable[[np.ndarray], np.ndarray] = ScriptedDriver(env)
+        else:
+            unwrapped = env.unwrapped
+
+            def act(obs: np.ndarray) -> np.ndarray:
+                return unwrapped.action_type.to_action(np.zeros(2)).astype(np.float32)
+
+        label = "ScriptedDriver" if args.scripted else "Zero increments"
+        print(f"{label}; {env_id} ({density}), seeds {args.seed}-{args.seed + args.episodes - 1}")
+        results = evaluate(act, env, args.episodes, args.seed)
         print(format_results(env_id, results, args.episodes))
         return results
     if not args.model:
-        parser.error("pass a model .zip to evaluate (or --scripted --env SCENARIO for the scripted driver)")
+        parser.error("pass a model .zip to evaluate (or --scripted / --idle --env SCENARIO for a baseline driver)")
     driver = load_driver(args.model, args.env, args.algo, args.vec_normalize, args.density, args.config, args.force)
     print(
         f"{type(driver.model).__name__} from {driver.path}"

@@ -12,6 +12,7 @@ import os
 import sys
 import zipfile
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -102,10 +103,33 @@ def test_evaluate_the_scripted_driver(capsys):
     assert evaluate.main(args) == results and "by_route" not in results  # the highway has no routes
     with pytest.raises(SystemExit):
         evaluate.main(["--scripted"])
-    assert "--scripted evaluates the scripted driver" in capsys.readouterr().err
+    assert "--scripted evaluates a baseline driver" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         evaluate.main([])
     assert "pass a model .zip to evaluate" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("config", [{}, {"normalized_action": True, "steering_feedforward": True}])
+def test_evaluate_zero_increments(capsys, config):
+    evaluate = load_example("evaluate_driving")
+    args = ["--idle", "--env", "intersection", "--episodes", "2", "--config", json.dumps({**SHORT, **config})]
+    results = evaluate.main(args)
+    assert capsys.readouterr().out.startswith("Zero increments; DACERF-Intersection-v0 (normal), seeds 10000-10001")
+    assert results["episode_length"] >= 1 and evaluate.main(args) == results
+    # The same episodes as an env stepped with zero increments by hand (the normalised action's zero is zero too).
+    env = gym.make("DACERF-Intersection-v0", config={**SHORT, **config})
+    total = 0.0
+    for seed in (10_000, 10_001):
+        env.reset(seed=seed)
+        done = False
+        while not done:
+            _obs, reward, terminated, truncated, _info = env.step(np.zeros(2, dtype=np.float32))
+            total += reward
+            done = terminated or truncated
+    assert results["tar"] == pytest.approx(total / 2)
+    with pytest.raises(SystemExit):
+        evaluate.main(["--idle", "--scripted", "--env", "multilane"])
+    assert "two baselines" in capsys.readouterr().err
 
 
 def test_evaluate_breaks_the_intersection_down_by_route(capsys):
