@@ -379,6 +379,17 @@ def test_scripted_driver_drives_the_same_with_normalized_actions():
     np.testing.assert_allclose(drive(normalized_action=True), drive(), atol=1e-6)
 
 
+def test_an_action_type_pickled_before_the_action_options_still_acts():
+    env = make("DACERF-Multilane-v0")
+    env.reset(seed=0)
+    action_type = env.unwrapped.action_type
+    for name in ("normalized", "steering_feedforward", "steering_residual"):
+        del action_type.__dict__[name]  # as unpickled from an older checkpoint
+    previous = action_type.command.copy()
+    env.step(np.array([0.25, 0.025], dtype=np.float32))
+    np.testing.assert_allclose(action_type.command - previous, [0.25, 0.025])
+
+
 def test_steering_feedforward_drives_a_turn_with_zero_actions():
     """With the feedforward a zero action follows the path's curvature within the steering-rate bounds."""
     env = gym.make("DACERF-Intersection-v0", density="sparse", config={"routes": ["right"], "steering_feedforward": True})

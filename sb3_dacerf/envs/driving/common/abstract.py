@@ -154,9 +154,9 @@ class PaperDrivingMixin(_HighwayEnv):
                 # False: the paper's action; True: Δδ steers on top of the nominal steering of the path
                 # steering_feedforward_preview [s] of travel ahead (action.IncrementalAction)
                 "steering_feedforward": False,
+                "steering_feedforward_preview": 0.5,
                 # False: the paper's raw increment bounds as the action space; True: Box(-1, 1), zero at its centre
                 "normalized_action": False,
-                "steering_feedforward_preview": 0.5,
                 "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
                 "boundary_threshold": 0.5,  # d_thresh [m]
                 # Severe events (collision, leaving the road): "dynamic" (see _severe_penalty) or a constant (paper: 200)

@@ -45,6 +45,11 @@ class IncrementalAction(ContinuousAction):
     :param normalized: actions in ``[-1, 1]``, scaled to the increment bounds on each side of zero
     """
 
+    # Class-level defaults: an action type pickled before these existed (a training checkpoint's env) still acts.
+    normalized = False
+    steering_feedforward: float | None = None
+    steering_residual = 0.0
+
     def __init__(
         self,
         env: AbstractEnv,
