@@ -233,9 +233,10 @@ class PaperDrivingMixin(_HighwayEnv):
         """
         The nominal steering [rad] of the reference path ``steering_feedforward_preview`` seconds of travel ahead of
         the ego's projection (at its current speed): what the kinematic bicycle model needs to follow the path there.
+        The projection is the current scene's: the ego has not moved since it was computed.
         """
         ego = self.vehicle
-        s, _ = self.reference.project(ego.position)
+        s = self._current_scene().reference_progress
         _, _, curvatures = self.reference.at(np.array([s + self.config["steering_feedforward_preview"] * ego.speed]))
         return nominal_steering(float(curvatures[0]), ego.LENGTH)
 

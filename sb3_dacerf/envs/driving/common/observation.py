@@ -56,6 +56,22 @@ class Scene:
     target speed, or with ``reference_speed_follows_traffic`` the lower speed the vehicle ahead allows."""
 
 
+def vehicle_gaps(vehicles: np.ndarray, ego_length: float, ego_width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Clearances between the ego's body and each scene vehicle's, along and across the ego's heading.
+
+    :param vehicles: the scene's vehicles, ego frame, ``[x, y, cos φ, sin φ, v, length, width]`` rows
+    :param ego_length: the ego's length [m]
+    :param ego_width: the ego's width [m]
+    :return: the longitudinal and lateral gaps [m] (negative: the bodies overlap along that axis), and the mask of
+        the vehicles in the ego's corridor ahead (in front of its centre and overlapping it laterally)
+    """
+    x, y = vehicles[:, 0], vehicles[:, 1]
+    gap_long = np.abs(x) - (ego_length + vehicles[:, 5]) / 2
+    gap_lat = np.abs(y) - (ego_width + vehicles[:, 6]) / 2
+    return gap_long, gap_lat, (x > 0) & (gap_lat < 0)
+
+
 def traffic_following_speed(
     target_speed: float,
     vehicles: np.ndarray,
@@ -83,12 +99,11 @@ def traffic_following_speed(
     """
     if not len(vehicles):
         return target_speed
-    x, y, cos_phi, speed, lengths, widths = (vehicles[:, i] for i in (0, 1, 2, 4, 5, 6))
-    ahead = (x > 0) & (np.abs(y) < (ego_width + widths) / 2)
+    gap_long, _, ahead = vehicle_gaps(vehicles, ego_length, ego_width)
     if not ahead.any():
         return target_speed
-    gaps = x[ahead] - (ego_length + lengths[ahead]) / 2
-    lead_speeds = np.maximum(speed[ahead] * cos_phi[ahead], 0.0)
+    gaps = gap_long[ahead]
+    lead_speeds = np.maximum(vehicles[ahead, 4] * vehicles[ahead, 2], 0.0)
     caps = lead_speeds + np.sqrt(2 * deceleration * np.maximum(gaps - lead_speeds * time_headway, 0.0))
     return float(min(target_speed, caps.min()))
 

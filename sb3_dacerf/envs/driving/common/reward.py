@@ -31,7 +31,7 @@ import math
 import numpy as np
 from highway_env.vehicle.kinematics import Vehicle
 
-from sb3_dacerf.envs.driving.common.observation import Scene
+from sb3_dacerf.envs.driving.common.observation import Scene, vehicle_gaps
 from sb3_dacerf.envs.driving.common.reference import nominal_steering
 
 REWARD_TERMS = (
@@ -90,10 +90,7 @@ def reward_terms(
 
     safe_front = safe_space = safe_side = safe_rear = 0.0
     if len(scene.vehicles):
-        x, y, lengths, widths = scene.vehicles[:, 0], scene.vehicles[:, 1], scene.vehicles[:, 5], scene.vehicles[:, 6]
-        gap_long = np.abs(x) - (ego.LENGTH + lengths) / 2
-        gap_lat = np.abs(y) - (ego.WIDTH + widths) / 2
-        ahead = (x > 0) & (gap_lat < 0)  # vehicles in the ego's corridor ahead
+        gap_long, gap_lat, ahead = vehicle_gaps(scene.vehicles, ego.LENGTH, ego.WIDTH)
         if ahead.any():
             gap = max(float(gap_long[ahead].min()), 0.0)
             safe_front = config["rho_front"] * (1 - math.tanh(gap / (max(v_x, 1e-3) * config["safe_time_headway"])))
@@ -103,7 +100,7 @@ def reward_terms(
         if intrusion.any():
             safe_space = config["rho_space"] * float(intrusion.sum())
             safe_side = config["rho_side"] * float(intrusion[gap_long <= 0].sum())
-            safe_rear = config["rho_rear"] * float(intrusion[(x < 0) & (gap_long > 0)].sum())
+            safe_rear = config["rho_rear"] * float(intrusion[(scene.vehicles[:, 0] < 0) & (gap_long > 0)].sum())
 
     off_road = scene.road_clearance < 0
     terms = {
