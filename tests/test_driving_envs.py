@@ -379,11 +379,61 @@ def test_scripted_driver_drives_the_same_with_normalized_actions():
     np.testing.assert_allclose(drive(normalized_action=True), drive(), atol=1e-6)
 
 
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_target_action_moves_the_command_towards_it_within_the_increment_bounds(env_id):
+    env = make(env_id, action_mode="target", duration=10)
+    env.reset(seed=0)
+    assert env.action_space == gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+    action_type = env.unwrapped.action_type
+    np.testing.assert_allclose(action_type.to_target(np.array([0.5, -1.0])), [0.4, -0.571])
+    commands = []
+    for _ in range(8):
+        env.step(np.array([0.5, -0.2], dtype=np.float32))
+        commands.append(action_type.command.copy())
+    commands = np.array(commands)
+    # a_x rises by the jerk bound 0.25 per step to its target 0.4 and stays; δ falls by 0.025 to -0.1142 and stays
+    np.testing.assert_allclose(commands[:, 0], [0.25, 0.4, 0.4, 0.4, 0.4, 0.4, 0.4, 0.4], atol=1e-12)
+    np.testing.assert_allclose(commands[:4, 1], [-0.025, -0.05, -0.075, -0.1], atol=1e-12)
+    np.testing.assert_allclose(commands[4:, 1], -0.2 * 0.571, atol=1e-12)
+    # Noise on the action jitters the command around its target instead of adding up: after 60 steps of noise
+    # around zero the command is within a few noise widths of zero, where increments drift as a random walk.
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 0.3, (60, 2)).clip(-1, 1).astype(np.float32)
+
+    def final_command(**config):
+        env = make("DACERF-Multilane-v0", **config)
+        env.reset(seed=1)
+        action_type = env.unwrapped.action_type
+        for action in noise:  # the action type alone, without simulating: the ego does not move
+            action_type.act(action)
+        return action_type.command
+
+    target_mode = final_command(action_mode="target")
+    assert abs(target_mode[0]) <= 0.3 * 0.8 * 3 and abs(target_mode[1]) <= 0.3 * 0.571 * 3
+    assert abs(target_mode[1]) < abs(final_command(normalized_action=True)[1])
+
+
+def test_scripted_driver_drives_the_same_with_target_actions():
+    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+    def drive(**config):
+        env = make("DACERF-Intersection-v0", duration=8, **config)
+        obs, _ = env.reset(seed=2)
+        driver, commands = ScriptedDriver(env), []
+        for _ in range(40):
+            obs, *_ = env.step(driver(obs))
+            commands.append(env.unwrapped.action_type.command.copy())
+        return np.array(commands)
+
+    np.testing.assert_allclose(drive(action_mode="target"), drive(), atol=1e-6)
+    np.testing.assert_allclose(drive(action_mode="target", steering_feedforward=True), drive(), atol=1e-6)
+
+
 def test_an_action_type_pickled_before_the_action_options_still_acts():
     env = make("DACERF-Multilane-v0")
     env.reset(seed=0)
     action_type = env.unwrapped.action_type
-    for name in ("normalized", "steering_feedforward", "steering_residual"):
+    for name in ("normalized", "mode", "steering_feedforward", "steering_residual"):
         del action_type.__dict__[name]  # as unpickled from an older checkpoint
     previous = action_type.command.copy()
     env.step(np.array([0.25, 0.025], dtype=np.float32))
@@ -562,6 +612,7 @@ def test_bad_kwargs_raise_clear_errors():
         ("DACERF-Multilane-v0", {"collision_penalty": "big"}, r"config\['collision_penalty'\]"),
         ("DACERF-Multilane-v0", {"huber_delta": 0}, r"config\['huber_delta'\] must be a number > 0"),
         ("DACERF-Multilane-v0", {"safe_space_margin": [3.0]}, r"config\['safe_space_margin'\] must be a pair"),
+        ("DACERF-Multilane-v0", {"action_mode": "targets"}, r"config\['action_mode'\] must be one of \['increment', 'target'\]"),
         ("DACERF-Multilane-v0", {"render_agent": "yes"}, r"config\['render_agent'\] must be True or False"),
         ("DACERF-Intersection-v0", {"spawn_probability": 1.5}, r"config\['spawn_probability'\] must be a number >= 0 and <= 1"),
         ("DACERF-Intersection-v0", {"routes": "left"}, r"config\['routes'\] must be a non-empty list"),

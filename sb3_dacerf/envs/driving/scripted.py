@@ -56,9 +56,9 @@ class ScriptedDriver:
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """
         :param obs: the flat observation of one env
-        :return: the increments [Δa_x, Δδ]
+        :return: the env's action that moves its command towards the acceleration and steering this driver wants
         """
-        v_x, _, _, acceleration, steering = obs[:EGO_FEATURES] * np.array([self.speed_scale, self.speed_scale, 1, 1, 1])
+        v_x = float(obs[0]) * self.speed_scale
         end = EGO_FEATURES + WAYPOINT_FEATURES * self.n_waypoints
         waypoints = obs[EGO_FEATURES:end].reshape(-1, WAYPOINT_FEATURES) * self.position_scale
         vehicles = obs[end:].reshape(-1, VEHICLE_FEATURES)
@@ -80,13 +80,9 @@ class ScriptedDriver:
         if self.yield_to_crossing and len(vehicles) and self._conflict(waypoints, vehicles, v_x):
             desired_acceleration = -1.0
 
-        increment = np.array([desired_acceleration - acceleration, desired_steering - steering])
         action_type = self._unwrapped.action_type
-        if action_type.steering_feedforward is not None:
-            # With the env's steering feedforward Δδ moves the residual on top of it: aim the sum at the steering wanted.
-            feedforward = self._unwrapped._steering_feedforward()
-            increment[1] = desired_steering - feedforward - action_type.steering_residual
-        return action_type.to_action(increment).astype(np.float32)
+        feedforward = self._unwrapped._steering_feedforward() if action_type.steering_feedforward is not None else None
+        return action_type.command_action(np.array([desired_acceleration, desired_steering]), feedforward).astype(np.float32)
 
     def _conflict(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float) -> bool:
         """Whether a vehicle's constant-velocity prediction comes within ``conflict_distance`` of the ego's path."""

@@ -157,6 +157,9 @@ class PaperDrivingMixin(_HighwayEnv):
                 "steering_feedforward_preview": 0.5,
                 # False: the paper's raw increment bounds as the action space; True: Box(-1, 1), zero at its centre
                 "normalized_action": False,
+                # "increment": the paper's action [Δa_x, Δδ]; "target": the action is the command [a_x, δ] (in
+                # Box(-1, 1)) that the command moves towards within the increment bounds (action.IncrementalAction)
+                "action_mode": "increment",
                 "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
                 "boundary_threshold": 0.5,  # d_thresh [m]
                 # Severe events (collision, leaving the road): "dynamic" (see _severe_penalty) or a constant (paper: 200)
@@ -205,6 +208,7 @@ class PaperDrivingMixin(_HighwayEnv):
             acceleration_range=config["acceleration_range"],
             steering_range=config["steering_range"],
             normalized=config["normalized_action"],
+            mode=config["action_mode"],
         )
         # The command an episode starts with: no acceleration and the ego's steering (zero, or the path's steering of
         # an exploring start inside a turn, reference_start_probability).

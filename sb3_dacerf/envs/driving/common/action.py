@@ -18,6 +18,13 @@ action component ``u`` is the increment ``u · high`` for ``u ≥ 0`` and ``u ·
 with the zero increment at the centre of the box. With the raw bounds the centre is ``Δa_x = -0.075`` m/s² per step
 (``[-0.4, 0.25]`` is not symmetric), so a policy whose output sits at the centre of its box, as SB3's policies do
 before they learn, brakes to a standstill.
+
+With ``mode="target"`` (the env's ``action_mode`` config key) the action is no longer the increment but the command it
+moves towards: ``Box(-1, 1, (2,))`` scaled to the command bounds on each side of zero (``a_x ∈ [-0.8, 0.8]`` m/s²,
+``δ ∈ [-0.571, 0.571]`` rad, or the steering residual on top of the feedforward), and each step the command moves
+towards it by at most the increment bounds. The physical limits (jerk, steering rate) and the comfort terms are the
+same; what changes is that noise on the action is not integrated: an exploring policy's noise jitters the command
+around its target, where with increments it adds up to a random walk of the steering and the acceleration.
 """
 
 from __future__ import annotations
@@ -43,10 +50,16 @@ class IncrementalAction(ContinuousAction):
     :param acceleration_range: bounds of the integrated a_x [m/s²]
     :param steering_range: bounds of the integrated δ [rad]
     :param normalized: actions in ``[-1, 1]``, scaled to the increment bounds on each side of zero
+    :param mode: ``"increment"`` (the paper's: the action is ``[Δa_x, Δδ]``) or ``"target"`` (the action, in
+        ``[-1, 1]`` scaled to the command bounds on each side of zero, is the command ``[a_x, δ]`` to move towards
+        within the increment bounds; with a feedforward its steering is the residual on top of it)
     """
+
+    MODES = ("increment", "target")
 
     # Class-level defaults: an action type pickled before these existed (a training checkpoint's env) still acts.
     normalized = False
+    mode = "increment"
     steering_feedforward: float | None = None
     steering_residual = 0.0
 
@@ -58,14 +71,18 @@ class IncrementalAction(ContinuousAction):
         acceleration_range: tuple[float, float] = (-0.8, 0.8),
         steering_range: tuple[float, float] = (-0.571, 0.571),
         normalized: bool = False,
+        mode: str = "increment",
         **kwargs,
     ) -> None:
+        if mode not in self.MODES:
+            raise ValueError(f"mode must be one of {list(self.MODES)}, got {mode!r}")
         super().__init__(env, acceleration_range=acceleration_range, steering_range=steering_range)
         self.increment_low = np.array([acceleration_increment_range[0], steering_increment_range[0]])
         self.increment_high = np.array([acceleration_increment_range[1], steering_increment_range[1]])
         self.command_low = np.array([acceleration_range[0], steering_range[0]])
         self.command_high = np.array([acceleration_range[1], steering_range[1]])
         self.normalized = normalized
+        self.mode = mode
         self.command = np.zeros(2)  # integrated [a_x, δ]
         self.applied_increment = np.zeros(2)  # increment actually applied after clipping, for the comfort terms
         self.steering_feedforward: float | None = None
@@ -74,12 +91,12 @@ class IncrementalAction(ContinuousAction):
         """With a feedforward: the integrated ``Δδ``, which δ follows on top of the feedforward [rad]."""
 
     def space(self) -> spaces.Box:
-        if self.normalized:
+        if self.normalized or self.mode == "target":
             return spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         return spaces.Box(self.increment_low.astype(np.float32), self.increment_high.astype(np.float32), dtype=np.float32)
 
     def to_increment(self, action: np.ndarray) -> np.ndarray:
-        """The increments ``[Δa_x, Δδ]`` an action asks for, clipped to their bounds."""
+        """The increments ``[Δa_x, Δδ]`` an action asks for, clipped to their bounds (``mode="increment"``)."""
         action = np.asarray(action, dtype=np.float64)
         if self.normalized:
             action = np.clip(action, -1.0, 1.0)
@@ -94,6 +111,34 @@ class IncrementalAction(ContinuousAction):
             with np.errstate(divide="ignore", invalid="ignore"):
                 return np.where(increment >= 0, increment / self.increment_high, increment / -self.increment_low)
         return increment
+
+    def to_target(self, action: np.ndarray) -> np.ndarray:
+        """The command ``[a_x, δ]`` (δ: the residual, with a feedforward) an action asks for (``mode="target"``)."""
+        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        return np.where(action >= 0, action * self.command_high, -action * self.command_low)
+
+    def command_action(self, desired: np.ndarray, feedforward: float | None = None) -> np.ndarray:
+        """
+        The action that moves the command towards ``desired = [a_x, δ]`` (the steering applied, feedforward included)
+        as fast as the increment bounds allow, in either mode: what a controller that computes the command it wants
+        (:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`) gives the env.
+
+        :param desired: the command wanted
+        :param feedforward: the steering feedforward of the coming step (the env's ``_steering_feedforward()``),
+            with the env's ``steering_feedforward`` on; ``None`` without
+        """
+        desired = np.array(desired, dtype=np.float64)
+        if self.mode == "target":
+            desired = np.clip(desired, self.command_low, self.command_high)
+            if feedforward is not None:
+                desired[1] -= feedforward
+            with np.errstate(divide="ignore", invalid="ignore"):  # a bound of 0 on one side is never divided by
+                return np.clip(np.where(desired >= 0, desired / self.command_high, desired / -self.command_low), -1, 1)
+        increment = desired - self.command
+        if feedforward is not None:
+            # Δδ moves the residual on top of the feedforward: aim the sum at the steering wanted.
+            increment[1] = desired[1] - feedforward - self.steering_residual
+        return self.to_action(increment)
 
     def check(self, action: np.ndarray) -> np.ndarray:
         """
@@ -120,6 +165,15 @@ class IncrementalAction(ContinuousAction):
         return array
 
     def act(self, action: np.ndarray) -> None:
+        if self.mode == "target":
+            wanted = self.to_target(action)
+            if self.steering_feedforward is not None:
+                self.steering_residual = float(wanted[1])
+                wanted[1] += self.steering_feedforward
+            wanted = np.clip(wanted, self.command_low, self.command_high)
+            command = self.command + np.clip(wanted - self.command, self.increment_low, self.increment_high)
+            self._apply(action, command)
+            return
         increment = self.to_increment(action)
         command = np.clip(self.command + increment, self.command_low, self.command_high)
         if self.steering_feedforward is not None:
@@ -128,6 +182,9 @@ class IncrementalAction(ContinuousAction):
             target = min(max(self.steering_residual + self.steering_feedforward, low), high)
             # The steering-rate bounds hold for the steering actually applied, feedforward included.
             command[1] = self.command[1] + min(max(target - self.command[1], self.increment_low[1]), self.increment_high[1])
+        self._apply(action, command)
+
+    def _apply(self, action: np.ndarray, command: np.ndarray) -> None:
         self.applied_increment = command - self.command
         self.command = command
         self.controlled_vehicle.act({"acceleration": float(command[0]), "steering": float(command[1])})

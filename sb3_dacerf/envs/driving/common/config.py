@@ -154,6 +154,7 @@ COMMON_RULES: dict[str, Rule] = {
     "steering_feedforward": boolean(),
     "steering_feedforward_preview": number(0),
     "normalized_action": boolean(),
+    "action_mode": choice(["increment", "target"]),
     "safe_space_margin": pair(0.0),
     "boundary_threshold": number(0),
     "collision_penalty": severe_penalty,
