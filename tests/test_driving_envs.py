@@ -364,7 +364,11 @@ def test_normalized_action_keeps_the_increment_bounds_with_zero_at_the_centre(en
     assert (raw.low + raw.high)[0] / 2 == pytest.approx(-0.075)
 
 
-def test_scripted_driver_drives_the_same_with_normalized_actions():
+@pytest.mark.parametrize(
+    "config",
+    [{"normalized_action": True}, {"action_mode": "target"}, {"action_mode": "target", "steering_feedforward": True}],
+)
+def test_scripted_driver_drives_the_same_with_every_action_option(config):
     from sb3_dacerf.envs.driving.scripted import ScriptedDriver
 
     def drive(**config):
@@ -376,7 +380,7 @@ def test_scripted_driver_drives_the_same_with_normalized_actions():
             commands.append(env.unwrapped.action_type.command.copy())
         return np.array(commands)
 
-    np.testing.assert_allclose(drive(normalized_action=True), drive(), atol=1e-6)
+    np.testing.assert_allclose(drive(**config), drive(), atol=1e-6)
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
@@ -411,22 +415,6 @@ def test_target_action_moves_the_command_towards_it_within_the_increment_bounds(
     target_mode = final_command(action_mode="target")
     assert abs(target_mode[0]) <= 0.3 * 0.8 * 3 and abs(target_mode[1]) <= 0.3 * 0.571 * 3
     assert abs(target_mode[1]) < abs(final_command(normalized_action=True)[1])
-
-
-def test_scripted_driver_drives_the_same_with_target_actions():
-    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
-
-    def drive(**config):
-        env = make("DACERF-Intersection-v0", duration=8, **config)
-        obs, _ = env.reset(seed=2)
-        driver, commands = ScriptedDriver(env), []
-        for _ in range(40):
-            obs, *_ = env.step(driver(obs))
-            commands.append(env.unwrapped.action_type.command.copy())
-        return np.array(commands)
-
-    np.testing.assert_allclose(drive(action_mode="target"), drive(), atol=1e-6)
-    np.testing.assert_allclose(drive(action_mode="target", steering_feedforward=True), drive(), atol=1e-6)
 
 
 def test_an_action_type_pickled_before_the_action_options_still_acts():
