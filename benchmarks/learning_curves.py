@@ -216,6 +216,26 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     return algorithm("MlpPolicy", env, seed=job["seed"], device=job["device"], **kwargs)
 
 
+def add_demonstrations(model: Any, n_transitions: int) -> None:
+    """
+    Add ``n_transitions`` of the driving scenario's scripted driver
+    (:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`) to a fresh model's replay buffer, stepped on its own
+    training env (so that VecNormalize's statistics see them too), as SB3 stores its own rollouts. They do not count
+    as the model's steps: a run's steps and evaluations count the learner's own transitions.
+    """
+    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+    env = model.get_env()
+    vec_normalize = model.get_vec_normalize_env()
+    drivers = [ScriptedDriver(single) for single in (vec_normalize.venv if vec_normalize else env).envs]
+    model._last_obs = env.reset()
+    model._last_original_obs = vec_normalize.get_original_obs() if vec_normalize else model._last_obs
+    for _ in range(-(-n_transitions // env.num_envs)):
+        actions = np.stack([driver(obs) for driver, obs in zip(drivers, model._last_original_obs, strict=True)])
+        new_obs, rewards, dones, infos = env.step(actions)
+        model._store_transition(model.replay_buffer, model.policy.scale_action(actions), new_obs, rewards, dones, infos)
+
+
 def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     """
     Train one variant with one seed; return one row per evaluation (read back if the run already finished).
@@ -253,6 +273,8 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
         print(f"{folder}: resumed at {model.num_timesteps} steps", flush=True)
     else:
         model = new_model(job, algorithm, kwargs)
+        if job.get("demonstrations"):
+            add_demonstrations(model, job["demonstrations"])
     resumed_at = model.num_timesteps
     start = time.perf_counter() - elapsed
 
@@ -437,6 +459,13 @@ def main() -> None:
         help="with --vec-normalize's observations, also scale the training rewards by VecNormalize's running return "
         "std (norm_reward=True); evaluations report the raw returns",
     )
+    parser.add_argument(
+        "--demonstrations",
+        type=int,
+        default=0,
+        help="driving scenarios: put that many transitions of the scripted driver in the replay buffer before training "
+        "(use another --out); they are not counted in the run's steps",
+    )
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
     parser.add_argument(
         "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
@@ -451,6 +480,13 @@ def main() -> None:
         args.seeds, args.timesteps, args.eval_freq, args.eval_episodes = 2, 3_000, 1_000, 3
     if args.n_envs < 1:
         parser.error(f"--n-envs must be at least 1, got {args.n_envs}")
+    if args.demonstrations < 0:
+        parser.error(f"--demonstrations must be at least 0, got {args.demonstrations}")
+    if args.demonstrations and args.env not in ("DACERF-Multilane-v0", "DACERF-Intersection-v0"):
+        parser.error(
+            f"--demonstrations needs a driving scenario (DACERF-Multilane-v0, DACERF-Intersection-v0), whose scripted "
+            f"driver gives them; {args.env} has none: leave it out"
+        )
     frequencies = (("--eval-freq", args.eval_freq), ("--checkpoint-freq", args.checkpoint_freq))
     uneven = [f"{name} {value}" for name, value in frequencies if value % args.n_envs]
     if uneven:
@@ -485,6 +521,7 @@ def main() -> None:
             vec_normalize=args.vec_normalize,
             normalize_reward=args.normalize_reward,
             n_envs=args.n_envs,
+            demonstrations=args.demonstrations,
         )
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants
