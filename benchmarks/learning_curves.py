@@ -23,6 +23,10 @@ training env's only (a training aid such as the intersection's exploring starts,
 each rollout step collects N transitions and is followed by the variant's gradient steps (one by default), so a run
 of ``--timesteps`` transitions takes ``--timesteps / N`` gradient steps, N transitions per gradient step; steps,
 evaluations and checkpoints are counted in transitions.
+
+``--demonstrations N`` (driving scenarios) puts N transitions of the scripted driver
+(:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`) in a new run's replay buffer before it trains, collected
+on its own training env as SB3 collects its rollouts; they stay in the buffer and are not counted in the run's steps.
 """
 
 import argparse
