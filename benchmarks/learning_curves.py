@@ -220,26 +220,6 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     return algorithm("MlpPolicy", env, seed=job["seed"], device=job["device"], **kwargs)
 
 
-def add_demonstrations(model: Any, n_transitions: int) -> None:
-    """
-    Add ``n_transitions`` of the driving scenario's scripted driver
-    (:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`) to a fresh model's replay buffer, stepped on its own
-    training env (so that VecNormalize's statistics see them too), as SB3 stores its own rollouts. They do not count
-    as the model's steps: a run's steps and evaluations count the learner's own transitions.
-    """
-    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
-
-    env = model.get_env()
-    vec_normalize = model.get_vec_normalize_env()
-    drivers = [ScriptedDriver(single) for single in (vec_normalize.venv if vec_normalize else env).envs]
-    model._last_obs = env.reset()
-    model._last_original_obs = vec_normalize.get_original_obs() if vec_normalize else model._last_obs
-    for _ in range(-(-n_transitions // env.num_envs)):
-        actions = np.stack([driver(obs) for driver, obs in zip(drivers, model._last_original_obs, strict=True)])
-        new_obs, rewards, dones, infos = env.step(actions)
-        model._store_transition(model.replay_buffer, model.policy.scale_action(actions), new_obs, rewards, dones, infos)
-
-
 def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     """
     Train one variant with one seed; return one row per evaluation (read back if the run already finished).
@@ -278,7 +258,9 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     else:
         model = new_model(job, algorithm, kwargs)
         if job.get("demonstrations"):
-            add_demonstrations(model, job["demonstrations"])
+            from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
+
+            add_scripted_transitions(model, job["demonstrations"])
     resumed_at = model.num_timesteps
     start = time.perf_counter() - elapsed
 

@@ -6,6 +6,7 @@ time limit reached safely on the highway), collision and off-road rates.
 
     python examples/train_driving.py --timesteps 2000 --eval-episodes 5       # short smoke run of both scenarios
     python examples/train_driving.py --env multilane --timesteps 100000 --n-envs 2 --vec-normalize --save runs/dacerf
+    python examples/train_driving.py --env intersection --timesteps 100000 --vec-normalize --demonstrations 10000
     python examples/train_driving.py --load runs/dacerf_multilane --timesteps 50000 --save runs/dacerf   # resume
     python examples/evaluate_driving.py runs/dacerf_multilane.zip --episodes 50                        # evaluate
 
@@ -39,6 +40,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
+from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths, policy_act
@@ -98,6 +100,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--n-envs", type=int, default=1, help="parallel training envs (SubprocVecEnv when > 1)")
     parser.add_argument("--vec-normalize", action="store_true", help="normalise observations with VecNormalize (rewards kept)")
+    parser.add_argument(
+        "--demonstrations",
+        type=int,
+        default=0,
+        help="put that many transitions of the scripted driver in a new model's replay buffer before it trains "
+        "(sb3_dacerf.envs.driving.scripted.add_scripted_transitions; not counted in --timesteps; needs --n-envs 1)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip (+ .json, _vecnormalize.pkl)")
     parser.add_argument("--save-replay-buffer", action="store_true", help="also save the replay buffer (for --load)")
@@ -141,11 +150,23 @@ def resume_settings(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     return load_paths
 
 
+def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse settings that cannot work, with argparse's usage message and exit status 2."""
+    if args.n_envs < 1:
+        parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
+    if args.demonstrations < 0:
+        parser.error(f"--demonstrations must be >= 0, got {args.demonstrations}")
+    if args.demonstrations and (args.n_envs > 1 or args.load):
+        parser.error(
+            "--demonstrations fills the buffer of a new model whose envs run in this process: leave out --load, and "
+            f"use --n-envs 1 (got {args.n_envs}: SubprocVecEnv runs its envs in other processes)"
+        )
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.n_envs < 1:
-        parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
+    check_args(parser, args)
     torch.set_num_threads(args.torch_threads)
     load_paths = resume_settings(parser, args) if args.load else None
 
@@ -182,6 +203,8 @@ def main(argv: list[str] | None = None) -> None:
             print(f"{env_id}: resumed {load_paths['model']} at {model.num_timesteps} steps", flush=True)
         else:
             model = algo_class("MlpPolicy", env, learning_starts=args.learning_starts, seed=args.seed, verbose=0, **algo_kwargs)
+            if args.demonstrations:
+                add_scripted_transitions(model, args.demonstrations)
         print(
             f"{env_id} ({args.density}), {args.algo}, training {args.timesteps} steps on {args.n_envs} env(s)"
             + (", observations normalised" if isinstance(env, VecNormalize) else ""),

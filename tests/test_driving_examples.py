@@ -185,6 +185,24 @@ def test_train_resumes_from_a_saved_model(trained, capsys):
     assert "is a sac model: pass --algo sac" in capsys.readouterr().err
 
 
+def test_train_with_demonstrations(tmp_path, capsys):
+    """--demonstrations N: N scripted-driver transitions in the new model's buffer, beside its own --timesteps."""
+    from stable_baselines3 import SAC
+
+    train = load_example("train_driving")
+    save = str(tmp_path / "demo")
+    args = ["--env", "intersection", "--algo", "sac", "--timesteps", "50", "--learning-starts", "10", "--batch-size", "16"]
+    args += ["--config", json.dumps(SHORT), "--demonstrations", "40", "--eval-episodes", "1", "--log-interval", "0"]
+    train.main([*args, "--save", save, "--save-replay-buffer"])
+    assert "trained 50 steps in total" in capsys.readouterr().out
+    model = SAC.load(save + "_intersection.zip")
+    model.load_replay_buffer(save + "_intersection_replay_buffer.pkl")
+    assert model.replay_buffer.pos == 90
+    with pytest.raises(SystemExit):
+        train.main([*args, "--n-envs", "2"])
+    assert "--demonstrations fills the buffer of a new model" in capsys.readouterr().err
+
+
 def test_evaluate_a_dacerf_model_without_metadata(tmp_path, capsys):
     """A DACERF model saved by model.save() (no metadata file): --env and --vec-normalize given explicitly."""
     import gymnasium as gym

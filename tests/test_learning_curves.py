@@ -4,7 +4,6 @@ import importlib.util
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
@@ -131,33 +130,19 @@ def test_n_envs_must_divide_the_evaluation_and_checkpoint_frequencies(tmp_path, 
     assert not list(tmp_path.iterdir())  # refused before anything is written
 
 
-def test_demonstrations_fill_the_replay_buffer_with_the_scripted_driver(tmp_path, learning_curves, monkeypatch, capsys):
-    """--demonstrations N: N scripted-driver transitions in a fresh model's buffer, not counted as its steps."""
+def test_demonstrations_go_into_a_new_run_s_buffer_only(tmp_path, learning_curves, monkeypatch, capsys):
+    """--demonstrations N: N scripted-driver transitions in a new run's buffer, not counted as its steps."""
     from stable_baselines3 import SAC
 
-    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
-
-    settings = job(tmp_path, "sac", 100, env="DACERF-Intersection-v0", env_kwargs={"config": {"duration": 5}}, vec_normalize=True)
-    model = learning_curves.new_model(settings, SAC, {})
-    learning_curves.add_demonstrations(model, 120)
-    buffer, vec_normalize = model.replay_buffer, model.get_vec_normalize_env()
-    assert buffer.pos == 120 and model.num_timesteps == 0
-    assert vec_normalize.obs_rms.count > 120  # the statistics saw them (and the resets)
-    assert buffer.dones[:120].sum() >= 2  # 50-step episodes: the driver's episodes end and the env resets
-    # The stored transitions are the driver's on the raw observations, in the policy's [-1, 1] scale: the same as
-    # driving the first episode (the VecEnv's first reset has the model's seed) by hand
-    import gymnasium as gym
-
-    env = gym.make("DACERF-Intersection-v0", config={"duration": 5})
-    obs, _ = env.reset(seed=3)
-    driver = ScriptedDriver(env)
-    for step in range(10):
-        np.testing.assert_allclose(buffer.observations[step, 0], obs, atol=1e-6)
-        action = driver(obs)
-        np.testing.assert_allclose(buffer.actions[step, 0], model.policy.scale_action(action), atol=1e-6)
-        obs, *_ = env.step(action)
+    settings = dict(env="DACERF-Intersection-v0", env_kwargs={"config": {"duration": 5}}, vec_normalize=True, demonstrations=60)
+    rows = learning_curves.run_one(job(tmp_path, "sac", 100, **settings))
+    assert [row["timesteps"] for row in rows] == [100]
+    folder = learning_curves.checkpoint_dir(tmp_path, "DACERF-Intersection-v0", "sac", 3)
+    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
+    assert model.num_timesteps == 100 and model.replay_buffer.pos == 160
     # Refused outside the driving scenarios, before anything is written
     monkeypatch.setattr(sys, "argv", ["learning_curves.py", "--demonstrations", "10", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):
         learning_curves.main()
     assert "--demonstrations needs a driving scenario" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

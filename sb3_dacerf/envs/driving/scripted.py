@@ -19,9 +19,12 @@ Example::
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
@@ -100,3 +103,50 @@ class ScriptedDriver:
             if np.min(np.hypot(*(other - ego).T)) < self.conflict_distance:
                 return True
         return False
+
+
+def add_scripted_transitions(model: OffPolicyAlgorithm, n_transitions: int, **driver_kwargs: Any) -> None:
+    """
+    Put ``n_transitions`` of the scripted driver in an off-policy model's replay buffer (demonstrations), before it
+    learns: each env of the model's own training ``VecEnv`` is driven by a :class:`ScriptedDriver`, and the
+    transitions are stored as SB3 stores its own rollouts (raw observations and rewards with ``VecNormalize``, whose
+    statistics see them too; actions in the policy's ``[-1, 1]`` scale; time limits marked as such). They do not count
+    as the model's steps (``model.num_timesteps`` stays as it is), and they stay in the buffer until it wraps around.
+
+    With DACERF they are imitated as well as evaluated: its actor's flow-matching term fits the replay actions
+    (moved by the Langevin steps), so the first updates already copy the driver.
+
+    Example::
+
+        model = DACERF("MlpPolicy", VecNormalize(DummyVecEnv([lambda: gym.make("DACERF-Intersection-v0")])))
+        add_scripted_transitions(model, 10_000)
+        model.learn(100_000)
+
+    :param model: an SB3 off-policy model (DACERF, DACER, SAC, TD3, ...) on a driving scenario's ``DummyVecEnv``
+        (possibly inside ``VecNormalize``): the drivers read the env objects, so they must live in this process
+    :param n_transitions: how many transitions to add (rounded up to a multiple of the number of envs)
+    :param driver_kwargs: arguments of :class:`ScriptedDriver` (``yield_to_crossing``, ...)
+    :raises ValueError: a negative ``n_transitions``, or a model whose envs are not in a ``DummyVecEnv``
+    :raises TypeError: envs that are not driving scenarios (from :class:`ScriptedDriver`)
+    """
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    if n_transitions < 0:
+        raise ValueError(f"n_transitions must be >= 0, got {n_transitions}")
+    env = model.get_env()
+    vec_normalize = model.get_vec_normalize_env()
+    inner = vec_normalize.venv if vec_normalize is not None else env
+    if env is None or not isinstance(inner, DummyVecEnv):
+        raise ValueError(
+            f"add_scripted_transitions needs the model's envs in this process (a DummyVecEnv, possibly in VecNormalize), "
+            f"got {type(inner).__name__}: fill the buffer of a model on a DummyVecEnv (SubprocVecEnv keeps its envs in "
+            "other processes)"
+        )
+    drivers = [ScriptedDriver(single, **driver_kwargs) for single in inner.envs]
+    model._last_obs = env.reset()  # type: ignore[assignment]  # a VecEnv's observations are arrays
+    model._last_original_obs = vec_normalize.get_original_obs() if vec_normalize is not None else model._last_obs
+    for _ in range(-(-n_transitions // env.num_envs)):
+        raw = model._last_original_obs
+        actions = np.stack([driver(obs) for driver, obs in zip(drivers, raw, strict=True)])  # type: ignore[arg-type]
+        new_obs, rewards, dones, infos = env.step(actions)
+        model._store_transition(model.replay_buffer, model.policy.scale_action(actions), new_obs, rewards, dones, infos)  # type: ignore[arg-type]
