@@ -468,10 +468,12 @@ def main() -> None:
         parser.error(f"--n-envs must be at least 1, got {args.n_envs}")
     if args.demonstrations < 0:
         parser.error(f"--demonstrations must be at least 0, got {args.demonstrations}")
-    if args.demonstrations and args.env not in ("DACERF-Multilane-v0", "DACERF-Intersection-v0"):
+    from sb3_dacerf.envs.driving import DRIVING_ENV_IDS
+
+    if args.demonstrations and args.env not in DRIVING_ENV_IDS:
         parser.error(
-            f"--demonstrations needs a driving scenario (DACERF-Multilane-v0, DACERF-Intersection-v0), whose scripted "
-            f"driver gives them; {args.env} has none: leave it out"
+            f"--demonstrations needs a driving scenario ({', '.join(DRIVING_ENV_IDS)}), whose scripted driver gives "
+            f"them; {args.env} has none: leave it out"
         )
     frequencies = (("--eval-freq", args.eval_freq), ("--checkpoint-freq", args.checkpoint_freq))
     uneven = [f"{name} {value}" for name, value in frequencies if value % args.n_envs]

@@ -37,6 +37,17 @@ from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.envs.common.action import ContinuousAction
 
 
+def from_unit(unit: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """``u`` in ``[-1, 1]`` to ``u · high`` for ``u >= 0`` and ``u · |low|`` for ``u < 0`` (zero stays zero)."""
+    return np.where(unit >= 0, unit * high, -unit * low)
+
+
+def to_unit(value: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`from_unit` for ``low <= value <= high`` (a bound of 0 on one side is never divided by)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(value >= 0, value / high, value / -low)
+
+
 class IncrementalAction(ContinuousAction):
     """
     Continuous action ``[Δa_x, Δδ]``: increments of the commanded acceleration [m/s²] and front-wheel
@@ -99,23 +110,19 @@ class IncrementalAction(ContinuousAction):
         """The increments ``[Δa_x, Δδ]`` an action asks for, clipped to their bounds (``mode="increment"``)."""
         action = np.asarray(action, dtype=np.float64)
         if self.normalized:
-            action = np.clip(action, -1.0, 1.0)
-            return np.where(action >= 0, action * self.increment_high, -action * self.increment_low)
+            return from_unit(np.clip(action, -1.0, 1.0), self.increment_low, self.increment_high)
         return np.clip(action, self.increment_low, self.increment_high)
 
     def to_action(self, increment: np.ndarray) -> np.ndarray:
         """The action that asks for the increments ``[Δa_x, Δδ]`` (clipped to their bounds); inverse of ``to_increment``."""
         increment = np.clip(np.asarray(increment, dtype=np.float64), self.increment_low, self.increment_high)
         if self.normalized:
-            # Bounds of 0 on one side give no increment on that side: their zero divisor is never used.
-            with np.errstate(divide="ignore", invalid="ignore"):
-                return np.where(increment >= 0, increment / self.increment_high, increment / -self.increment_low)
+            return to_unit(increment, self.increment_low, self.increment_high)
         return increment
 
     def to_target(self, action: np.ndarray) -> np.ndarray:
         """The command ``[a_x, δ]`` (δ: the residual, with a feedforward) an action asks for (``mode="target"``)."""
-        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
-        return np.where(action >= 0, action * self.command_high, -action * self.command_low)
+        return from_unit(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0), self.command_low, self.command_high)
 
     def command_action(self, desired: np.ndarray, feedforward: float | None = None) -> np.ndarray:
         """
@@ -132,8 +139,7 @@ class IncrementalAction(ContinuousAction):
             desired = np.clip(desired, self.command_low, self.command_high)
             if feedforward is not None:
                 desired[1] -= feedforward
-            with np.errstate(divide="ignore", invalid="ignore"):  # a bound of 0 on one side is never divided by
-                return np.clip(np.where(desired >= 0, desired / self.command_high, desired / -self.command_low), -1, 1)
+            return np.clip(to_unit(desired, self.command_low, self.command_high), -1, 1)
         increment = desired - self.command
         if feedforward is not None:
             # Δδ moves the residual on top of the feedforward: aim the sum at the steering wanted.
