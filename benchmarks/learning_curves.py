@@ -27,6 +27,8 @@ evaluations and checkpoints are counted in transitions.
 ``--demonstrations N`` (driving scenarios) puts N transitions of the scripted driver
 (:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`) in a new run's replay buffer before it trains, collected
 on its own training env as SB3 collects its rollouts; they stay in the buffer and are not counted in the run's steps.
+With ``--demonstration-fraction F`` they are kept in a :class:`sb3_dacerf.common.buffers.DemonstrationReplayBuffer`,
+which draws the share F of every batch from them.
 """
 
 import argparse
@@ -104,6 +106,15 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
     return pd.read_csv(path).to_dict("records") if path.exists() else []
 
 
+BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+
+def buffer_parts(buffer: Any) -> dict[str, Any]:
+    """The replay buffers a checkpoint stores by name prefix: the model's, and a DemonstrationReplayBuffer's second."""
+    demonstrations = getattr(buffer, "demonstrations", None)
+    return {"": buffer} if demonstrations is None else {"": buffer, "demonstrations.": demonstrations}
+
+
 def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_seconds: float) -> None:
     """
     Everything a run needs to go on exactly as if it had not stopped: the model (with its optimizers and
@@ -124,12 +135,12 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
     tmp.mkdir(parents=True)
     model.save(tmp / "model.zip")
     buffer = model.replay_buffer
-    size = buffer.buffer_size if buffer.full else buffer.pos
-    arrays = {
-        name: getattr(buffer, name)[:size]
-        for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
-        if getattr(buffer, name, None) is not None
-    }
+    arrays = {}
+    for prefix, part in buffer_parts(buffer).items():
+        size = part.buffer_size if part.full else part.pos
+        for name in BUFFER_ARRAYS:
+            if getattr(part, name, None) is not None:
+                arrays[prefix + name] = getattr(part, name)[:size]
     np.savez(tmp / "replay_buffer.npz", **arrays)
     env = model.get_env()
     # VecNormalize pickles its statistics without the environments it wraps: both are kept
@@ -138,8 +149,7 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
         venv = env.venv if normalize else env
         cloudpickle.dump(dict(venv=venv, normalize=normalize, returns=getattr(normalize, "returns", None)), file)
     state = dict(
-        pos=buffer.pos,
-        full=buffer.full,
+        positions={prefix: (part.pos, part.full) for prefix, part in buffer_parts(buffer).items()},
         torch=th.get_rng_state(),
         numpy=np.random.get_state(),
         python=random.getstate(),
@@ -176,11 +186,15 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
         state = pickle.load(file)
     # force_reset=False: go on from the environment's state and the model's _last_obs
     model = algorithm.load(folder / "model.zip", env=env, device=device, force_reset=False)
-    buffer = model.replay_buffer
+    parts = buffer_parts(model.replay_buffer)
     with np.load(folder / "replay_buffer.npz") as arrays:
-        for name in arrays.files:
-            getattr(buffer, name)[: len(arrays[name])] = arrays[name]
-    buffer.pos, buffer.full = state["pos"], state["full"]
+        for key in arrays.files:
+            prefix, name = key.rpartition(".")[0::2]
+            getattr(parts[prefix + "." if prefix else ""], name)[: len(arrays[key])] = arrays[key]
+    # Checkpoints written before the buffer's parts were named kept only the one buffer's pos and full
+    positions = state.get("positions", {"": (state.get("pos"), state.get("full"))})
+    for prefix, (pos, full) in positions.items():
+        parts[prefix].pos, parts[prefix].full = pos, full
     # Loading re-seeds everything (SB3's _setup_model): put the random states back where they were
     th.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
@@ -214,6 +228,11 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     if job["vec_normalize"] or job.get("normalize_reward"):
         env = VecNormalize(env, norm_obs=True, norm_reward=bool(job.get("normalize_reward")))
     kwargs = dict(kwargs)
+    if job.get("demonstration_fraction") is not None:
+        from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
+
+        kwargs["replay_buffer_class"] = DemonstrationReplayBuffer
+        kwargs["replay_buffer_kwargs"] = dict(demonstration_fraction=job["demonstration_fraction"])
     if "action_noise_std" in kwargs:
         dim = env.action_space.shape[0]
         kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
@@ -452,6 +471,12 @@ def main() -> None:
         help="driving scenarios: put that many transitions of the scripted driver in the replay buffer before training "
         "(use another --out); they are not counted in the run's steps",
     )
+    parser.add_argument(
+        "--demonstration-fraction",
+        type=float,
+        help="with --demonstrations: keep them in a DemonstrationReplayBuffer and draw this share of every batch "
+        "from them (default: a plain replay buffer, where their share falls as the agent's transitions fill it)",
+    )
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
     parser.add_argument(
         "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
@@ -474,6 +499,11 @@ def main() -> None:
         parser.error(
             f"--demonstrations needs a driving scenario ({', '.join(DRIVING_ENV_IDS)}), whose scripted driver gives "
             f"them; {args.env} has none: leave it out"
+        )
+    if args.demonstration_fraction is not None and not (args.demonstrations and 0 <= args.demonstration_fraction <= 1):
+        parser.error(
+            f"--demonstration-fraction {args.demonstration_fraction}: pass a share in [0, 1], together with "
+            "--demonstrations N (the demonstrations it draws from)"
         )
     frequencies = (("--eval-freq", args.eval_freq), ("--checkpoint-freq", args.checkpoint_freq))
     uneven = [f"{name} {value}" for name, value in frequencies if value % args.n_envs]
@@ -510,6 +540,7 @@ def main() -> None:
             normalize_reward=args.normalize_reward,
             n_envs=args.n_envs,
             demonstrations=args.demonstrations,
+            demonstration_fraction=args.demonstration_fraction,
         )
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants

@@ -146,3 +146,25 @@ def test_demonstrations_go_into_a_new_run_s_buffer_only(tmp_path, learning_curve
         learning_curves.main()
     assert "--demonstrations needs a driving scenario" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_demonstration_fraction_keeps_them_in_their_own_part(tmp_path, learning_curves, monkeypatch, capsys):
+    """--demonstration-fraction F: the demonstrations in a DemonstrationReplayBuffer drawing F of every batch."""
+    from stable_baselines3 import SAC
+
+    from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
+
+    settings = dict(env="DACERF-Intersection-v0", env_kwargs={"config": {"duration": 5}}, demonstrations=60)
+    learning_curves.run_one(job(tmp_path, "sac", 100, demonstration_fraction=0.5, **settings))
+    folder = learning_curves.checkpoint_dir(tmp_path, "DACERF-Intersection-v0", "sac", 3)
+    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
+    buffer = model.replay_buffer
+    assert isinstance(buffer, DemonstrationReplayBuffer) and buffer.demonstration_fraction == 0.5
+    assert buffer.n_demonstrations() == 60 and buffer.pos == 100
+    for argv in (["--demonstration-fraction", "0.5"], ["--demonstrations", "10", "--demonstration-fraction", "2"]):
+        argv = ["learning_curves.py", "--env", "DACERF-Intersection-v0", *argv, "--out", str(tmp_path / "x")]
+        monkeypatch.setattr(sys, "argv", argv)
+        with pytest.raises(SystemExit):
+            learning_curves.main()
+        assert "pass a share in [0, 1], together with --demonstrations N" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

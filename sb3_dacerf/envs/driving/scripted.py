@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager, nullcontext
 from typing import Any
 
 import gymnasium as gym
@@ -26,6 +27,7 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
+from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
 
@@ -112,6 +114,8 @@ def add_scripted_transitions(model: OffPolicyAlgorithm, n_transitions: int, **dr
     transitions are stored as SB3 stores its own rollouts (raw observations and rewards with ``VecNormalize``, whose
     statistics see them too; actions in the policy's ``[-1, 1]`` scale; time limits marked as such). They do not count
     as the model's steps (``model.num_timesteps`` stays as it is), and they stay in the buffer until it wraps around.
+    With a :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer` they go to its demonstrations' part, which
+    keeps them and gives them a fixed share of every batch.
 
     With DACERF they are imitated as well as evaluated: its actor's flow-matching term fits the replay actions
     (moved by the Langevin steps), so the first updates already copy the driver.
@@ -126,7 +130,8 @@ def add_scripted_transitions(model: OffPolicyAlgorithm, n_transitions: int, **dr
         (possibly inside ``VecNormalize``): the drivers read the env objects, so they must live in this process
     :param n_transitions: how many transitions to add (rounded up to a multiple of the number of envs)
     :param driver_kwargs: arguments of :class:`ScriptedDriver` (``yield_to_crossing``, ...)
-    :raises ValueError: a negative ``n_transitions``, or a model whose envs are not in a ``DummyVecEnv``
+    :raises ValueError: a negative ``n_transitions``, a model whose envs are not in a ``DummyVecEnv``, or more
+        transitions than a ``DemonstrationReplayBuffer``'s demonstrations' part has room for
     :raises TypeError: envs that are not driving scenarios (from :class:`ScriptedDriver`)
     """
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -142,11 +147,23 @@ def add_scripted_transitions(model: OffPolicyAlgorithm, n_transitions: int, **dr
             f"got {type(inner).__name__}: fill the buffer of a model on a DummyVecEnv (SubprocVecEnv keeps its envs in "
             "other processes)"
         )
+    n_steps = -(-n_transitions // env.num_envs)
+    buffer = model.replay_buffer
+    recording: AbstractContextManager[None] = nullcontext()
+    if isinstance(buffer, DemonstrationReplayBuffer):
+        free = buffer.demonstration_capacity - buffer.n_demonstrations()
+        if n_steps * env.num_envs > free:
+            raise ValueError(
+                f"{n_steps * env.num_envs} demonstrations do not fit in the {free} free places of the buffer's "
+                "demonstrations: pass a larger demonstration_size in replay_buffer_kwargs (or add fewer)"
+            )
+        recording = buffer.recording_demonstrations()
     drivers = [ScriptedDriver(single, **driver_kwargs) for single in inner.envs]
     model._last_obs = env.reset()  # type: ignore[assignment]  # a VecEnv's observations are arrays
     model._last_original_obs = vec_normalize.get_original_obs() if vec_normalize is not None else model._last_obs
-    for _ in range(-(-n_transitions // env.num_envs)):
-        raw = model._last_original_obs
-        actions = np.stack([driver(obs) for driver, obs in zip(drivers, raw, strict=True)])  # type: ignore[arg-type]
-        new_obs, rewards, dones, infos = env.step(actions)
-        model._store_transition(model.replay_buffer, model.policy.scale_action(actions), new_obs, rewards, dones, infos)  # type: ignore[arg-type]
+    with recording:
+        for _ in range(n_steps):
+            raw = model._last_original_obs
+            actions = np.stack([driver(obs) for driver, obs in zip(drivers, raw, strict=True)])  # type: ignore[arg-type]
+            new_obs, rewards, dones, infos = env.step(actions)
+            model._store_transition(buffer, model.policy.scale_action(actions), new_obs, rewards, dones, infos)  # type: ignore[arg-type]
