@@ -39,6 +39,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
+from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
 
@@ -107,6 +108,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="put that many transitions of the scripted driver in a new model's replay buffer before it trains "
         "(sb3_dacerf.envs.driving.scripted.add_scripted_transitions; not counted in --timesteps; needs --n-envs 1)",
     )
+    parser.add_argument(
+        "--demonstration-fraction",
+        type=float,
+        help="with --demonstrations: keep them in a DemonstrationReplayBuffer (sb3_dacerf.common.buffers) that draws "
+        "this share of every batch from them (default: the plain buffer, where their share falls as the model's own "
+        "transitions fill it)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip (+ .json, _vecnormalize.pkl)")
     parser.add_argument("--save-replay-buffer", action="store_true", help="also save the replay buffer (for --load)")
@@ -156,6 +164,11 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
     if args.demonstrations < 0:
         parser.error(f"--demonstrations must be >= 0, got {args.demonstrations}")
+    if args.demonstration_fraction is not None and not (args.demonstrations and 0 <= args.demonstration_fraction <= 1):
+        parser.error(
+            f"--demonstration-fraction {args.demonstration_fraction}: pass a share in [0, 1], together with "
+            "--demonstrations N (the demonstrations it draws from)"
+        )
     if args.demonstrations and (args.n_envs > 1 or args.load):
         parser.error(
             "--demonstrations fills the buffer of a new model whose envs run in this process: leave out --load, and "
@@ -202,6 +215,9 @@ def main(argv: list[str] | None = None) -> None:
                 model.load_replay_buffer(replay_path)
             print(f"{env_id}: resumed {load_paths['model']} at {model.num_timesteps} steps", flush=True)
         else:
+            if args.demonstration_fraction is not None:
+                algo_kwargs["replay_buffer_class"] = DemonstrationReplayBuffer
+                algo_kwargs["replay_buffer_kwargs"] = dict(demonstration_fraction=args.demonstration_fraction)
             model = algo_class("MlpPolicy", env, learning_starts=args.learning_starts, seed=args.seed, verbose=0, **algo_kwargs)
             if args.demonstrations:
                 add_scripted_transitions(model, args.demonstrations)

@@ -201,6 +201,14 @@ def test_train_with_demonstrations(tmp_path, capsys):
     with pytest.raises(SystemExit):
         train.main([*args, "--n-envs", "2"])
     assert "--demonstrations fills the buffer of a new model" in capsys.readouterr().err
+    # --demonstration-fraction: kept apart, drawn as that share of every batch
+    train.main([*args, "--demonstration-fraction", "0.5", "--save", save, "--save-replay-buffer"])
+    model = SAC.load(save + "_intersection.zip")
+    model.load_replay_buffer(save + "_intersection_replay_buffer.pkl")
+    assert model.replay_buffer.n_demonstrations() == 40 and model.replay_buffer.pos == 50
+    with pytest.raises(SystemExit):
+        train.main([*args[:-6], "--demonstration-fraction", "0.5"])  # without --demonstrations
+    assert "pass a share in [0, 1], together with --demonstrations N" in capsys.readouterr().err
 
 
 def test_evaluate_a_dacerf_model_without_metadata(tmp_path, capsys):
