@@ -70,6 +70,8 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # rewards are audited as undiscounted episode totals)
     "sac-gamma998": ("SAC", dict(gamma=0.998)),
     "dacerf-gradnorm-gamma998": ("DACERF", dict(langevin_normalize_gradient=True, gamma=0.998)),
+    # with --demonstration-fraction: the demonstrations' own actions as flow-matching targets (no Langevin step)
+    "dacerf-gradnorm-demo-actions": ("DACERF", dict(langevin_normalize_gradient=True, demonstration_targets="actions")),
     "td3": ("TD3", {}),
     "tqc": ("TQC", {}),
     "crossq": ("CrossQ", {}),

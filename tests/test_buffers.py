@@ -81,3 +81,30 @@ def test_scripted_demonstrations_go_to_their_part_and_survive_save_and_load(tmp_
     loaded = fresh.replay_buffer
     assert loaded.n_demonstrations() == 60 and loaded.size() == 30 and loaded.demonstration_fraction == 0.5
     np.testing.assert_array_equal(loaded.demonstrations.actions[:60], buffer.demonstrations.actions[:60])
+
+
+def test_dacerf_fits_the_demonstrated_actions_with_demonstration_targets_actions():
+    """demonstration_targets="actions": the batch's leading demonstrations are fitted as they are, at the mean weight."""
+    import torch as th
+
+    from sb3_dacerf import DACERF
+
+    kwargs = dict(replay_buffer_class=DemonstrationReplayBuffer, replay_buffer_kwargs=dict(demonstration_fraction=0.25))
+    model = DACERF(
+        "MlpPolicy", "Pendulum-v1", seed=0, learning_starts=20, batch_size=32, demonstration_targets="actions", **kwargs
+    )
+    with model.replay_buffer.recording_demonstrations():
+        model.learn(40)  # transitions of the untrained policy, standing in for demonstrations
+    model.learn(40)
+    buffer = model.replay_buffer
+    assert buffer.n_demonstrations() == 40 and buffer.size() == 40
+    batch = buffer.sample(32, env=None)
+    assert batch.n_demonstrations == 8
+    terms = model.actor_loss_terms(batch)
+    th.testing.assert_close(terms["targets"][:8], batch.actions[:8])
+    assert not th.allclose(terms["targets"][8:], batch.actions[8:])  # the agent's own: Langevin targets
+    assert th.allclose(terms["lambda_f"][:8], terms["lambda_f"][:8].mean().expand(8, 1))
+    model.demonstration_targets = "langevin"  # the paper's update: every replay action moved by Langevin dynamics
+    assert not th.allclose(model.actor_loss_terms(batch)["targets"][:8], batch.actions[:8])
+    with pytest.raises(ValueError, match="demonstration_targets='copy': it must be 'langevin' or 'actions'"):
+        DACERF("MlpPolicy", "Pendulum-v1", demonstration_targets="copy")

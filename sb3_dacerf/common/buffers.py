@@ -33,6 +33,12 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
 
 
+class DemonstrationSamples(ReplayBufferSamples):
+    """A batch of :class:`DemonstrationReplayBuffer`: its first ``n_demonstrations`` transitions are demonstrations."""
+
+    n_demonstrations: int = 0
+
+
 class DemonstrationReplayBuffer(ReplayBuffer):
     """
     SB3's :class:`~stable_baselines3.common.buffers.ReplayBuffer` for the agent's transitions, plus a second one of
@@ -124,11 +130,12 @@ class DemonstrationReplayBuffer(ReplayBuffer):
         else:
             super().add(obs, next_obs, action, reward, done, infos)
 
-    def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> DemonstrationSamples:
         """
         :param batch_size: transitions in the batch
         :param env: the ``VecNormalize`` wrapper whose statistics normalise the observations and rewards, if any
         :return: ``round(demonstration_fraction * batch_size)`` demonstrations first, then the agent's transitions
+            (their number in the batch's ``n_demonstrations``)
         """
         self.demonstrations.device = self.device  # the model's load() moves the buffer to its device
         n_demonstrations = round(self.demonstration_fraction * batch_size)
@@ -136,11 +143,12 @@ class DemonstrationReplayBuffer(ReplayBuffer):
             n_demonstrations = 0
         elif self.size() == 0:
             n_demonstrations = batch_size
-        if n_demonstrations == 0:
-            return super().sample(batch_size, env=env)
-        if n_demonstrations == batch_size:
-            return self.demonstrations.sample(batch_size, env=env)
-        demonstrated = self.demonstrations.sample(n_demonstrations, env=env)
-        own = super().sample(batch_size - n_demonstrations, env=env)
-        joined = [None if first is None else th.cat((first, second)) for first, second in zip(demonstrated, own, strict=True)]  # type: ignore[arg-type]
-        return ReplayBufferSamples(*joined)  # type: ignore[arg-type]  # only the optional discounts can be None
+        parts = []
+        if n_demonstrations > 0:
+            parts.append(self.demonstrations.sample(n_demonstrations, env=env))
+        if n_demonstrations < batch_size:
+            parts.append(super().sample(batch_size - n_demonstrations, env=env))
+        fields = [None if values[0] is None else th.cat(values) for values in zip(*parts, strict=True)]
+        samples = DemonstrationSamples(*fields)  # type: ignore[arg-type]  # only the optional discounts can be None
+        samples.n_demonstrations = n_demonstrations
+        return samples

@@ -83,6 +83,10 @@ class DACERF(TwinCriticAlgorithm):
     :param flow_matching_weights: How the two terms of the actor loss are weighted: ``"gain"`` (scale- and
         shift-free, the default), ``"q_scale"`` (``λ_f`` times ``mean|Q|``, version 0.1.0 and the paper preset),
         ``"td3bc"`` or ``"flowrl"`` (see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights`)
+    :param demonstration_targets: What the imitation term fits for the demonstrations of a
+        :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer` (its batches say how many they hold):
+        ``"langevin"`` treats them as any replay action (Langevin targets, weighted by their gain); ``"actions"`` fits
+        the demonstrated actions themselves, each with the batch's mean weight ``λ_f``
     :param ent_coef: Entropy regulator coefficient ``α``, the exploration noise being ``N(0, (0.15 α)²)``.
         ``"auto"`` learns it starting from ``α = 3`` (DACER's initial value), ``"auto_0.5"`` starting from 0.5;
         a float fixes it; ``0`` adds no noise (the paper's mechanism)
@@ -152,6 +156,7 @@ class DACERF(TwinCriticAlgorithm):
         n_sampling_steps: int | None = None,
         flow_matching_coef: float = 1.0,
         flow_matching_weights: str = "gain",
+        demonstration_targets: str = "langevin",
         ent_coef: str | float = "auto",
         target_entropy: str | float = "auto",
         entropy_estimate: str = "fit",
@@ -196,6 +201,7 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_normalize_gradient = langevin_normalize_gradient
         self.flow_matching_coef = flow_matching_coef
         self.flow_matching_weights = flow_matching_weights
+        self.demonstration_targets = demonstration_targets
         # Entropy regulator
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
@@ -221,6 +227,8 @@ class DACERF(TwinCriticAlgorithm):
                 f"Invalid flow_matching_weights={self.flow_matching_weights!r}: "
                 f"it must be one of {', '.join(FLOW_MATCHING_WEIGHTS)}."
             )
+        if self.demonstration_targets not in ("langevin", "actions"):
+            raise ValueError(f"Invalid demonstration_targets={self.demonstration_targets!r}: it must be 'langevin' or 'actions'.")
         if self.entropy_estimate not in ("fit", "noise"):
             raise ValueError(f"Invalid entropy_estimate={self.entropy_estimate!r}: it must be 'fit' or 'noise'.")
 
@@ -303,7 +311,8 @@ class DACERF(TwinCriticAlgorithm):
         :param replay_data: A batch of the replay buffer
         :return: ``improvement_term`` (``mean(-Q(s, π(s)) / κ)``) and ``imitation_term``
             (``mean(λ_f ||v - (a* - a_0)||²)``), both differentiable with respect to the actor, and (detached)
-            ``kappa``, ``lambda_f``, ``flow_error``, ``q_values_star``, ``q_values_buffer`` and the state ``features``
+            ``kappa``, ``lambda_f``, ``flow_error``, ``q_values_star``, ``q_values_buffer``, the state ``features``
+            and the flow-matching ``targets`` (``a*``, or the demonstrated actions with ``demonstration_targets="actions"``)
         """
         observations, actions_buffer = replay_data.observations, replay_data.actions
         with frozen(self._critic_parameters()):
@@ -327,10 +336,15 @@ class DACERF(TwinCriticAlgorithm):
             q_values_pi = self._min_q(observations, actions_pi)
 
             # Flow-matching (imitation) term ||v_θ(s, a_t, t) - (a* - a_0)||² towards a*, weighted by λ_f ∝ the gain
-            flow_error = flow_matching_loss(functools.partial(self.actor.velocity, features), actions_star)
             kappa, lambda_f = actor_loss_weights(
                 self.flow_matching_weights, q_values_pi, q_values_star, q_values_buffer, self.flow_matching_coef
             )
+            targets = actions_star
+            n_demonstrations = getattr(replay_data, "n_demonstrations", 0) if self.demonstration_targets == "actions" else 0
+            if n_demonstrations > 0:  # the leading demonstrations: their own actions, at the batch's mean weight
+                targets = th.cat((actions_buffer[:n_demonstrations], actions_star[n_demonstrations:]))
+                lambda_f = th.cat((lambda_f.mean().expand(n_demonstrations, 1), lambda_f[n_demonstrations:]))
+            flow_error = flow_matching_loss(functools.partial(self.actor.velocity, features), targets)
         return dict(
             improvement_term=(-q_values_pi / kappa).mean(),
             imitation_term=(lambda_f * flow_error).mean(),
@@ -340,6 +354,7 @@ class DACERF(TwinCriticAlgorithm):
             q_values_star=q_values_star,
             q_values_buffer=q_values_buffer,
             features=features.detach(),
+            targets=targets,
         )
 
     def actor_gradient_ratio(self, terms: dict[str, th.Tensor]) -> float:
