@@ -6,7 +6,8 @@ time limit reached safely on the highway), collision and off-road rates.
 
     python examples/train_driving.py --timesteps 2000 --eval-episodes 5       # short smoke run of both scenarios
     python examples/train_driving.py --env multilane --timesteps 100000 --n-envs 2 --vec-normalize --save runs/dacerf
-    python examples/train_driving.py --env intersection --timesteps 100000 --vec-normalize --demonstrations 10000
+    python examples/train_driving.py --env intersection --timesteps 100000 --vec-normalize --demonstrations 10000 \
+        --demonstration-fraction 0.5 --demonstration-targets actions               # the shipped intersection driver
     python examples/train_driving.py --load runs/dacerf_multilane --timesteps 50000 --save runs/dacerf   # resume
     python examples/evaluate_driving.py runs/dacerf_multilane.zip --episodes 50                        # evaluate
 
@@ -17,7 +18,9 @@ step count, the normalisation statistics and, if saved, the replay buffer (witho
 empty buffer and waits ``--learning-starts`` steps again).
 
 Hyper-parameters: the algorithm's constructor defaults (for DACERF those of benchmarks/learning.md: entropy
-regulator on, actor loss weighted by the Langevin gain, lr 3e-4, batch 256, τ = 0.005); ``--paper`` selects the
+regulator on, actor loss weighted by the Langevin gain, lr 3e-4, batch 256, τ = 0.005), DACERF with
+``langevin_normalize_gradient=True`` as ``hyperparams/dacerf.yml`` sets it for these scenarios, whose returns are in
+the thousands; ``--paper`` selects the
 paper's Table II values (learning rate 1e-4, replay batch 512, RAD, γ = 0.99, τ = 0.001, policy delay 3, Langevin
 η = 0.03, α = 0.01, 20 steps, no added exploration noise). The paper trains 5e5 iterations.
 """
@@ -115,6 +118,12 @@ def build_parser() -> argparse.ArgumentParser:
         "this share of every batch from them (default: the plain buffer, where their share falls as the model's own "
         "transitions fill it)",
     )
+    parser.add_argument(
+        "--demonstration-targets",
+        choices=["langevin", "actions"],
+        help="DACERF with --demonstration-fraction: 'actions' fits the demonstrated actions as they are, 'langevin' "
+        "(the constructor default) moves them by Langevin steps like the model's own (DACERF's demonstration_targets)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip (+ .json, _vecnormalize.pkl)")
     parser.add_argument("--save-replay-buffer", action="store_true", help="also save the replay buffer (for --load)")
@@ -169,11 +178,36 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
             f"--demonstration-fraction {args.demonstration_fraction}: pass a share in [0, 1], together with "
             "--demonstrations N (the demonstrations it draws from)"
         )
+    if args.demonstration_targets and (args.demonstration_fraction is None or args.algo not in (None, "dacerf")):
+        parser.error(
+            "--demonstration-targets is DACERF's treatment of the demonstrations kept apart by --demonstration-fraction: "
+            "pass --demonstration-fraction too, and leave out --algo sac"
+        )
     if args.demonstrations and (args.n_envs > 1 or args.load):
         parser.error(
             "--demonstrations fills the buffer of a new model whose envs run in this process: leave out --load, and "
             f"use --n-envs 1 (got {args.n_envs}: SubprocVecEnv runs its envs in other processes)"
         )
+
+
+def algorithm_kwargs(args: argparse.Namespace) -> dict:
+    """The keyword arguments of a new model: the constructor defaults (benchmarks/learning.md) or the paper's Table II
+    values with ``--paper``, and what the other options ask for."""
+    kwargs: dict = {}
+    if args.paper:
+        shared = ("learning_rate", "batch_size", "tau")  # what SAC takes of the paper's settings
+        kwargs = {k: v for k, v in PAPER_HYPERPARAMETERS.items() if args.algo == "dacerf" or k in shared}
+    elif args.algo == "dacerf":
+        # The RL Zoo setting for the driving scenarios (hyperparams/dacerf.yml): returns in the thousands
+        kwargs["langevin_normalize_gradient"] = True
+    if args.batch_size is not None:
+        kwargs["batch_size"] = args.batch_size
+    if args.demonstration_fraction is not None:
+        kwargs["replay_buffer_class"] = DemonstrationReplayBuffer
+        kwargs["replay_buffer_kwargs"] = dict(demonstration_fraction=args.demonstration_fraction)
+    if args.demonstration_targets:
+        kwargs["demonstration_targets"] = args.demonstration_targets
+    return kwargs
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -185,13 +219,7 @@ def main(argv: list[str] | None = None) -> None:
 
     args.algo = args.algo or "dacerf"
     algo_class = load_algorithm(args.algo)
-    # The constructor defaults (benchmarks/learning.md), or the paper's Table II values with --paper
-    algo_kwargs: dict = {}
-    if args.paper:
-        shared = ("learning_rate", "batch_size", "tau")  # what SAC takes of the paper's settings
-        algo_kwargs = {k: v for k, v in PAPER_HYPERPARAMETERS.items() if args.algo == "dacerf" or k in shared}
-    if args.batch_size is not None:
-        algo_kwargs["batch_size"] = args.batch_size
+    algo_kwargs = algorithm_kwargs(args)
 
     scenarios = SCENARIOS if args.env in (None, "all") else {args.env: SCENARIOS[args.env]}
     for name, env_id in scenarios.items():
@@ -215,9 +243,6 @@ def main(argv: list[str] | None = None) -> None:
                 model.load_replay_buffer(replay_path)
             print(f"{env_id}: resumed {load_paths['model']} at {model.num_timesteps} steps", flush=True)
         else:
-            if args.demonstration_fraction is not None:
-                algo_kwargs["replay_buffer_class"] = DemonstrationReplayBuffer
-                algo_kwargs["replay_buffer_kwargs"] = dict(demonstration_fraction=args.demonstration_fraction)
             model = algo_class("MlpPolicy", env, learning_starts=args.learning_starts, seed=args.seed, verbose=0, **algo_kwargs)
             if args.demonstrations:
                 add_scripted_transitions(model, args.demonstrations)

@@ -209,6 +209,9 @@ def test_train_with_demonstrations(tmp_path, capsys):
     with pytest.raises(SystemExit):
         train.main([*args[:-6], "--demonstration-fraction", "0.5"])  # without --demonstrations
     assert "pass a share in [0, 1], together with --demonstrations N" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        train.main([*args, "--demonstration-targets", "actions"])  # a SAC model, no --demonstration-fraction
+    assert "pass --demonstration-fraction too, and leave out --algo sac" in capsys.readouterr().err
 
 
 def test_evaluate_a_dacerf_model_without_metadata(tmp_path, capsys):
