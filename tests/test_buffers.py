@@ -108,3 +108,5 @@ def test_dacerf_fits_the_demonstrated_actions_with_demonstration_targets_actions
     assert not th.allclose(model.actor_loss_terms(batch)["targets"][:8], batch.actions[:8])
     with pytest.raises(ValueError, match="demonstration_targets='copy': it must be 'langevin' or 'actions'"):
         DACERF("MlpPolicy", "Pendulum-v1", demonstration_targets="copy")
+    with pytest.raises(ValueError, match="but the replay buffer is a ReplayBuffer: pass replay_buffer_class="):
+        DACERF("MlpPolicy", "Pendulum-v1", demonstration_targets="actions")

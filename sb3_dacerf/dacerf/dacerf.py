@@ -10,6 +10,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
+from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
 from sb3_dacerf.common.langevin import MinQActionGradient, compiled_langevin_targets, langevin_targets
 from sb3_dacerf.common.twin_critic import (
@@ -234,6 +235,12 @@ class DACERF(TwinCriticAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
+        if self.demonstration_targets == "actions" and not isinstance(self.replay_buffer, DemonstrationReplayBuffer):
+            raise ValueError(
+                "demonstration_targets='actions' fits the demonstrations of a DemonstrationReplayBuffer, but the replay "
+                f"buffer is a {type(self.replay_buffer).__name__}: pass replay_buffer_class=DemonstrationReplayBuffer "
+                "(sb3_dacerf.common.buffers), or leave demonstration_targets at 'langevin'"
+            )
         self.target_entropy = resolve_target_entropy(self.target_entropy, -float(get_action_dim(self.action_space)))
         initial_ent_coef = self._initial_ent_coef()
         self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
