@@ -136,9 +136,9 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     model.save(tmp / "model.zip")
-    buffer = model.replay_buffer
+    parts = buffer_parts(model.replay_buffer)
     arrays = {}
-    for prefix, part in buffer_parts(buffer).items():
+    for prefix, part in parts.items():
         size = part.buffer_size if part.full else part.pos
         for name in BUFFER_ARRAYS:
             if getattr(part, name, None) is not None:
@@ -151,7 +151,7 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
         venv = env.venv if normalize else env
         cloudpickle.dump(dict(venv=venv, normalize=normalize, returns=getattr(normalize, "returns", None)), file)
     state = dict(
-        positions={prefix: (part.pos, part.full) for prefix, part in buffer_parts(buffer).items()},
+        positions={prefix: (part.pos, part.full) for prefix, part in parts.items()},
         torch=th.get_rng_state(),
         numpy=np.random.get_state(),
         python=random.getstate(),
@@ -190,9 +190,10 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
     model = algorithm.load(folder / "model.zip", env=env, device=device, force_reset=False)
     parts = buffer_parts(model.replay_buffer)
     with np.load(folder / "replay_buffer.npz") as arrays:
-        for key in arrays.files:
-            prefix, name = key.rpartition(".")[0::2]
-            getattr(parts[prefix + "." if prefix else ""], name)[: len(arrays[key])] = arrays[key]
+        for prefix, part in parts.items():
+            for name in BUFFER_ARRAYS:
+                if prefix + name in arrays.files:
+                    getattr(part, name)[: len(arrays[prefix + name])] = arrays[prefix + name]
     # Checkpoints written before the buffer's parts were named kept only the one buffer's pos and full
     positions = state.get("positions", {"": (state.get("pos"), state.get("full"))})
     for prefix, (pos, full) in positions.items():
