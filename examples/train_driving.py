@@ -6,6 +6,8 @@ time limit reached safely on the highway), collision and off-road rates.
 
     python examples/train_driving.py --timesteps 2000 --eval-episodes 5       # short smoke run of both scenarios
     python examples/train_driving.py --env multilane --timesteps 100000 --n-envs 2 --vec-normalize --save runs/dacerf
+    python examples/train_driving.py --env multilane --timesteps 100000 --vec-normalize --demonstrations 10000 \
+        --demonstration-fraction 0.5 --config '{"reference_speed_follows_traffic": true}'  # the shipped multilane driver
     python examples/train_driving.py --env intersection --timesteps 100000 --vec-normalize --demonstrations 10000 \
         --demonstration-fraction 0.5 --demonstration-targets actions               # the shipped intersection driver
     python examples/train_driving.py --load runs/dacerf_multilane --timesteps 50000 --save runs/dacerf   # resume
