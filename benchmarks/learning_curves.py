@@ -28,7 +28,8 @@ evaluations and checkpoints are counted in transitions.
 (:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`) in a new run's replay buffer before it trains, collected
 on its own training env as SB3 collects its rollouts; they stay in the buffer and are not counted in the run's steps.
 With ``--demonstration-fraction F`` they are kept in a :class:`sb3_dacerf.common.buffers.DemonstrationReplayBuffer`,
-which draws the share F of every batch from them.
+which draws the share F of every batch from them. ``--demonstrator junction`` gives them with the intersection's
+gap-accepting driver (:class:`sb3_dacerf.envs.driving.scripted.JunctionDriver`) instead.
 """
 
 import argparse
@@ -280,9 +281,9 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     else:
         model = new_model(job, algorithm, kwargs)
         if job.get("demonstrations"):
-            from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
+            from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS, add_scripted_transitions
 
-            add_scripted_transitions(model, job["demonstrations"])
+            add_scripted_transitions(model, job["demonstrations"], driver=DEMONSTRATORS[job.get("demonstrator", "scripted")])
     resumed_at = model.num_timesteps
     start = time.perf_counter() - elapsed
 
@@ -480,6 +481,12 @@ def main() -> None:
         help="with --demonstrations: keep them in a DemonstrationReplayBuffer and draw this share of every batch "
         "from them (default: a plain replay buffer, where their share falls as the agent's transitions fill it)",
     )
+    parser.add_argument(
+        "--demonstrator",
+        choices=["scripted", "junction"],
+        default="scripted",
+        help="with --demonstrations: the driver that gives them (junction: the intersection's gap-accepting driver)",
+    )
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
     parser.add_argument(
         "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
@@ -507,6 +514,10 @@ def main() -> None:
         parser.error(
             f"--demonstration-fraction {args.demonstration_fraction}: pass a share in [0, 1], together with "
             "--demonstrations N (the demonstrations it draws from)"
+        )
+    if args.demonstrator == "junction" and (not args.demonstrations or args.env != "DACERF-Intersection-v0"):
+        parser.error(
+            "--demonstrator junction drives DACERF-Intersection-v0 and gives --demonstrations: pass both (or leave it out)"
         )
     frequencies = (("--eval-freq", args.eval_freq), ("--checkpoint-freq", args.checkpoint_freq))
     uneven = [f"{name} {value}" for name, value in frequencies if value % args.n_envs]
@@ -544,6 +555,7 @@ def main() -> None:
             n_envs=args.n_envs,
             demonstrations=args.demonstrations,
             demonstration_fraction=args.demonstration_fraction,
+            demonstrator=args.demonstrator,
         )
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants

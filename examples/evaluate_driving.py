@@ -5,6 +5,7 @@ collision and off-road rates and mean episode length over N seeded, deterministi
     python examples/evaluate_driving.py driving_multilane.zip --episodes 20
     python examples/evaluate_driving.py model.zip --env intersection --algo sac --vec-normalize stats.pkl
     python examples/evaluate_driving.py --scripted --env multilane --episodes 50   # the scripted reference driver
+    python examples/evaluate_driving.py --scripted junction --env intersection --episodes 50   # its demonstrator
     python examples/evaluate_driving.py --idle --env intersection --episodes 50    # zero increments: the floor
 
 A model saved by ``examples/train_driving.py --save NAME`` comes with ``NAME_<scenario>.json`` (env id, density,
@@ -239,7 +240,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("model", nargs="?", help="the model .zip (the .zip suffix may be left out)")
     parser.add_argument(
-        "--scripted", action="store_true", help="evaluate the scripted reference driver instead of a model (needs --env)"
+        "--scripted",
+        nargs="?",
+        const="scripted",
+        choices=["scripted", "junction"],
+        help="evaluate a scripted driver instead of a model (needs --env): the reference driver, or 'junction', the "
+        "intersection's gap-accepting demonstrator",
     )
     parser.add_argument(
         "--idle",
@@ -264,18 +270,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if args.model or not args.env:
             parser.error(f"{name} evaluates a baseline driver: pass --env multilane or --env intersection and no model")
         env_id, density = SCENARIOS[args.env], args.density or "normal"
+        if args.scripted == "junction" and args.env != "intersection":
+            parser.error("--scripted junction drives the intersection: pass --env intersection (or plain --scripted)")
         env = gym.make(env_id, density=density, config=args.config or {})
         if args.scripted:
-            from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+            from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
 
-            act: Callable[[np.ndarray], np.ndarray] = ScriptedDriver(env)
+            act: Callable[[np.ndarray], np.ndarray] = DEMONSTRATORS[args.scripted](env)
         else:
             unwrapped = env.unwrapped
 
             def act(obs: np.ndarray) -> np.ndarray:
                 return unwrapped.action_type.to_action(np.zeros(2)).astype(np.float32)
 
-        label = "ScriptedDriver" if args.scripted else "Zero increments"
+        label = type(act).__name__ if args.scripted else "Zero increments"
         print(f"{label}; {env_id} ({density}), seeds {args.seed}-{args.seed + args.episodes - 1}")
         results = evaluate(act, env, args.episodes, args.seed)
         print(format_results(env_id, results, args.episodes))

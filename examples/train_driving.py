@@ -46,7 +46,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
-from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
+from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS, add_scripted_transitions
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths, policy_act
@@ -121,6 +121,13 @@ def build_parser() -> argparse.ArgumentParser:
         "transitions fill it)",
     )
     parser.add_argument(
+        "--demonstrator",
+        choices=["scripted", "junction"],
+        default="scripted",
+        help="with --demonstrations: the driver that gives them, the reference driver or, with --env intersection, "
+        "'junction', the gap-accepting JunctionDriver (sb3_dacerf.envs.driving.scripted)",
+    )
+    parser.add_argument(
         "--demonstration-targets",
         choices=["langevin", "actions"],
         help="DACERF with --demonstration-fraction: 'actions' fits the demonstrated actions as they are, 'langevin' "
@@ -180,6 +187,8 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
             f"--demonstration-fraction {args.demonstration_fraction}: pass a share in [0, 1], together with "
             "--demonstrations N (the demonstrations it draws from)"
         )
+    if args.demonstrator == "junction" and (not args.demonstrations or args.env != "intersection"):
+        parser.error("--demonstrator junction gives the intersection's --demonstrations: pass both and --env intersection")
     if args.demonstration_targets and (args.demonstration_fraction is None or args.algo not in (None, "dacerf")):
         parser.error(
             "--demonstration-targets is DACERF's treatment of the demonstrations kept apart by --demonstration-fraction: "
@@ -247,7 +256,7 @@ def main(argv: list[str] | None = None) -> None:
         else:
             model = algo_class("MlpPolicy", env, learning_starts=args.learning_starts, seed=args.seed, verbose=0, **algo_kwargs)
             if args.demonstrations:
-                add_scripted_transitions(model, args.demonstrations)
+                add_scripted_transitions(model, args.demonstrations, driver=DEMONSTRATORS[args.demonstrator])
         print(
             f"{env_id} ({args.density}), {args.algo}, training {args.timesteps} steps on {args.n_envs} env(s)"
             + (", observations normalised" if isinstance(env, VecNormalize) else ""),

@@ -676,6 +676,54 @@ def test_scripted_driver_takes_only_the_driving_envs():
     assert action.shape == (2,) and np.all(action >= env.action_space.low) and np.all(action <= env.action_space.high)
 
 
+def left_turn_against_oncoming_car(driver_class, longitudinal: float, **driver_kwargs):
+    """
+    One left turn of the intersection with a single oncoming car (8 m/s, ``longitudinal`` m along the north arm's
+    entry lane, going straight on) and no other traffic: whether the ego crashed, arrived, and the episode's length.
+    """
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    env = make("DACERF-Intersection-v0", duration=40, routes=["left"], initial_vehicle_count=0, spawn_probability=0.0)
+    obs, _ = env.reset(seed=0)
+    unwrapped = env.unwrapped
+    oncoming = IDMVehicle.make_on_lane(unwrapped.road, ("o2", "ir2", 0), longitudinal=longitudinal, speed=8.0)
+    oncoming.plan_route_to("o0")
+    unwrapped.road.vehicles = [unwrapped.vehicle, oncoming]
+    driver, done, steps, info = driver_class(env, **driver_kwargs), False, 0, {}
+    while not done:
+        obs, _, terminated, truncated, info = env.step(driver(obs))
+        done, steps = terminated or truncated, steps + 1
+    return unwrapped.vehicle.crashed, info["is_success"], steps
+
+
+def test_junction_driver_waits_for_the_oncoming_car_the_tracker_turns_into():
+    from sb3_dacerf.envs.driving.scripted import JunctionDriver, ScriptedDriver
+
+    # Alone, both drive the same turn in the same time
+    assert left_turn_against_oncoming_car(JunctionDriver, 0.0) == left_turn_against_oncoming_car(ScriptedDriver, 0.0)
+    crashed, arrived, _ = left_turn_against_oncoming_car(ScriptedDriver, 65.0, yield_to_crossing=False)
+    assert crashed and not arrived
+    crashed, arrived, steps = left_turn_against_oncoming_car(JunctionDriver, 65.0)
+    assert not crashed and arrived
+    assert steps > left_turn_against_oncoming_car(JunctionDriver, 0.0)[2]  # it waited for the car to pass
+
+
+def test_junction_driver_takes_only_the_intersection():
+    from sb3_dacerf.envs.driving.scripted import JunctionDriver
+
+    with pytest.raises(TypeError, match=r"JunctionDriver drives DACERF-Intersection-v0, got MultilaneEnv: use ScriptedDriver"):
+        JunctionDriver(make("DACERF-Multilane-v0"))
+
+
+def test_travel_time():
+    from sb3_dacerf.envs.driving.scripted import travel_time
+
+    # From 2 m/s at 1 m/s² up to 4 m/s: 6 m in 2 s while accelerating, then 4 m/s; negative distances take no time
+    np.testing.assert_allclose(travel_time(np.array([-1.0, 0.0, 2.5, 6.0, 10.0]), 2.0, 1.0, 4.0), [0, 0, 1, 2, 3])
+    # Already faster than max_speed: it keeps its speed
+    np.testing.assert_allclose(travel_time(np.array([10.0]), 5.0, 1.0, 4.0), [2.0])
+
+
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_check_env(env_id):
     from gymnasium.utils.env_checker import check_env as gym_check_env

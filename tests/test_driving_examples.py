@@ -104,6 +104,14 @@ def test_evaluate_the_scripted_driver(capsys):
     with pytest.raises(SystemExit):
         evaluate.main(["--scripted"])
     assert "--scripted evaluates a baseline driver" in capsys.readouterr().err
+    junction = evaluate.main(
+        ["--scripted", "junction", "--env", "intersection", "--episodes", "2", "--config", json.dumps(SHORT)]
+    )
+    assert capsys.readouterr().out.startswith("JunctionDriver; DACERF-Intersection-v0 (normal), seeds 10000-10001")
+    assert junction["episode_length"] >= 1
+    with pytest.raises(SystemExit):
+        evaluate.main(["--scripted", "junction", "--env", "multilane"])
+    assert "--scripted junction drives the intersection" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         evaluate.main([])
     assert "pass a model .zip to evaluate" in capsys.readouterr().err
@@ -212,6 +220,14 @@ def test_train_with_demonstrations(tmp_path, capsys):
     with pytest.raises(SystemExit):
         train.main([*args, "--demonstration-targets", "actions"])  # a SAC model, no --demonstration-fraction
     assert "pass --demonstration-fraction too, and leave out --algo sac" in capsys.readouterr().err
+    # --demonstrator junction: the intersection's gap-accepting driver gives them
+    train.main([*args, "--demonstrator", "junction", "--save", save, "--save-replay-buffer"])
+    model = SAC.load(save + "_intersection.zip")
+    model.load_replay_buffer(save + "_intersection_replay_buffer.pkl")
+    assert model.replay_buffer.pos == 90
+    with pytest.raises(SystemExit):
+        train.main([*args[2:], "--env", "multilane", "--demonstrator", "junction"])
+    assert "--demonstrator junction gives the intersection's --demonstrations" in capsys.readouterr().err
 
 
 def test_evaluate_a_dacerf_model_without_metadata(tmp_path, capsys):

@@ -148,6 +148,28 @@ def test_demonstrations_go_into_a_new_run_s_buffer_only(tmp_path, learning_curve
     assert not (tmp_path / "x").exists()
 
 
+def test_demonstrator_junction_gives_the_demonstrations_at_the_intersection_only(tmp_path, learning_curves, monkeypatch, capsys):
+    """--demonstrator junction: the JunctionDriver fills the buffer; refused without --demonstrations or elsewhere."""
+    from stable_baselines3 import SAC
+
+    settings = dict(env="DACERF-Intersection-v0", env_kwargs={"config": {"duration": 5}}, demonstrations=60)
+    learning_curves.run_one(job(tmp_path, "sac", 100, demonstrator="junction", **settings))
+    folder = learning_curves.checkpoint_dir(tmp_path, "DACERF-Intersection-v0", "sac", 3)
+    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
+    assert model.num_timesteps == 100 and model.replay_buffer.pos == 160
+    for argv in (
+        ["--env", "DACERF-Intersection-v0"],
+        ["--env", "DACERF-Multilane-v0", "--demonstrations", "10"],
+    ):
+        monkeypatch.setattr(
+            sys, "argv", ["learning_curves.py", *argv, "--demonstrator", "junction", "--out", str(tmp_path / "x")]
+        )
+        with pytest.raises(SystemExit):
+            learning_curves.main()
+        assert "--demonstrator junction drives DACERF-Intersection-v0 and gives --demonstrations" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
 def test_demonstration_fraction_keeps_them_in_their_own_part(tmp_path, learning_curves, monkeypatch, capsys):
     """--demonstration-fraction F: the demonstrations in a DemonstrationReplayBuffer drawing F of every batch."""
     from stable_baselines3 import SAC

@@ -9,6 +9,11 @@ spacing, braking for the nearest vehicle in its corridor ahead and, with ``yield
 any vehicle whose constant-velocity prediction meets the ego's path within ``horizon`` seconds (crossing and
 oncoming traffic at the intersection, vehicles in the target lane of a lane change).
 
+:class:`JunctionDriver` is the intersection's better demonstrator: the same tracking, and a gap acceptance at the
+stop line that reads the traffic's planned routes from the simulator (so it sees more than the observation). On three
+sets of 50 unseen seeds it collides in 8%, 8% and 10% of the episodes, where :class:`ScriptedDriver` collides in
+12%, 14% and 18% (``benchmarks/README.md``).
+
 Example::
 
     env = gym.make("DACERF-Intersection-v0")
@@ -68,26 +73,30 @@ class ScriptedDriver:
         waypoints = obs[EGO_FEATURES:end].reshape(-1, WAYPOINT_FEATURES) * self.position_scale
         vehicles = obs[end:].reshape(-1, VEHICLE_FEATURES)
         vehicles = vehicles[vehicles[:, 5] > 0]
-
         # The waypoint spacing is the target speed times the waypoint interval.
-        reference_speed = np.hypot(*(waypoints[1, :2] - waypoints[0, :2])) / self.waypoint_interval
-        # Pure pursuit: look ahead ~0.8 s of travel, at least 4 m, along the waypoints.
+        reference_speed = float(np.hypot(*(waypoints[1, :2] - waypoints[0, :2])) / self.waypoint_interval)
+        desired = np.array([self._acceleration(waypoints, vehicles, v_x, reference_speed), self._steering(waypoints, v_x)])
+        action_type = self._unwrapped.action_type
+        feedforward = self._unwrapped._steering_feedforward() if action_type.steering_feedforward is not None else None
+        return action_type.command_action(desired, feedforward).astype(np.float32)
+
+    def _steering(self, waypoints: np.ndarray, v_x: float) -> float:
+        """Pure pursuit: the front-wheel angle towards the waypoint ~0.8 s of travel (at least 4 m) ahead."""
         distances = np.hypot(waypoints[:, 0], waypoints[:, 1])
         target = waypoints[min(int(np.searchsorted(distances, max(4.0, 0.8 * v_x))), self.n_waypoints - 1), :2]
         curvature = 2 * target[1] / max(target @ target, 1e-6)
-        desired_steering = np.arctan(2 * np.tan(np.arcsin(np.clip(curvature * self.length / 2, -1, 1))))
-        desired_acceleration = 0.5 * (reference_speed - v_x)
+        return float(np.arctan(2 * np.tan(np.arcsin(np.clip(curvature * self.length / 2, -1, 1)))))
 
+    def _acceleration(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float, reference_speed: float) -> float:
+        """Towards the target speed; braking for the vehicle ahead and, with ``yield_to_crossing``, for conflicts."""
+        desired_acceleration = 0.5 * (reference_speed - v_x)
         for x, y in vehicles[:, :2] * self.position_scale:
             gap = x - self.length
             if x > 0 and abs(y) < 2.5 and gap < 2.0 * max(v_x, 1.0) + 5:
                 desired_acceleration = -1.0
         if self.yield_to_crossing and len(vehicles) and self._conflict(waypoints, vehicles, v_x):
             desired_acceleration = -1.0
-
-        action_type = self._unwrapped.action_type
-        feedforward = self._unwrapped._steering_feedforward() if action_type.steering_feedforward is not None else None
-        return action_type.command_action(np.array([desired_acceleration, desired_steering]), feedforward).astype(np.float32)
+        return desired_acceleration
 
     def _conflict(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float) -> bool:
         """Whether a vehicle's constant-velocity prediction comes within ``conflict_distance`` of the ego's path."""
@@ -107,10 +116,197 @@ class ScriptedDriver:
         return False
 
 
-def add_scripted_transitions(model: OffPolicyAlgorithm, n_transitions: int, **driver_kwargs: Any) -> None:
+def travel_time(distance: np.ndarray, speed: float, acceleration: float, max_speed: float) -> np.ndarray:
+    """
+    Time [s] to cover ``distance`` [m] from ``speed``, accelerating at ``acceleration`` up to ``max_speed`` [m/s].
+
+    :param distance: distances (negative ones count as 0)
+    :param speed: initial speed, >= 0
+    :param acceleration: > 0
+    :param max_speed: the speed kept once reached (the initial speed if it is higher)
+    """
+    distance = np.maximum(np.asarray(distance, dtype=np.float64), 0.0)
+    max_speed = max(max_speed, speed, 1e-6)
+    t_accelerating = (max_speed - speed) / acceleration
+    d_accelerating = speed * t_accelerating + 0.5 * acceleration * t_accelerating**2
+    while_accelerating = (np.sqrt(speed**2 + 2 * acceleration * distance) - speed) / acceleration
+    return np.where(distance <= d_accelerating, while_accelerating, t_accelerating + (distance - d_accelerating) / max_speed)
+
+
+class JunctionDriver(ScriptedDriver):
+    """
+    A gap-accepting driver for ``DACERF-Intersection-v0``: the demonstrator of the intersection's training recipe.
+
+    It tracks the reference as :class:`ScriptedDriver` does (pure pursuit, speed control, braking for the vehicle
+    ahead), and before its front crosses the junction's stop line it checks its whole crossing against the traffic:
+    each vehicle within 80 m is predicted along its planned route (highway-env's, read from the simulator: this
+    driver sees more than the observation holds), and its time window on the ego's path (arriving at least as early as
+    accelerating at ``traffic_acceleration`` up to ``traffic_max_speed``, leaving no later than at ``traffic_min_speed``,
+    each widened by ``margin``) is compared with the ego's own (accelerating at ``ego_acceleration`` from its speed up
+    to the target speed). On a conflict the ego brakes towards a stop before it, at the stop line at the latest, at
+    most ``approach_deceleration``; conflicts it can no longer stop before (the paper's braking bound is 0.8 m/s²) are
+    passed. Once its front is in the junction the ego is committed: it crosses, braking only for the vehicle ahead,
+    since a car stopped in the junction is in the way of everyone's turn.
+
+    The vehicles are covered by three circles along their axis; two vehicles' paths conflict where circles come
+    within ``conflict_distance``.
+
+    :param env: a ``DACERF-Intersection-v0`` env (wrapped or not)
+    :param conflict_distance: distance between circle centres counted as a conflict [m]
+    :param margin: widening of the traffic's time windows [s]
+    :param traffic_acceleration: the acceleration the traffic's earliest arrival assumes [m/s²]
+    :param traffic_max_speed: the speed the traffic's earliest arrival assumes it reaches [m/s]
+    :param traffic_min_speed: the speed the traffic's latest departure assumes at least [m/s]
+    :param ego_acceleration: the ego's acceleration in its own crossing plan [m/s²]
+    :param approach_deceleration: the deceleration the approach to a stop plans with [m/s²]
+    """
+
+    CIRCLE_OFFSETS = np.array([-1.67, 0.0, 1.67])
+    """Centres of the three circles covering a 5 m x 2 m vehicle, along its axis from its centre [m]."""
+    PREDICTION_DISTANCES = np.arange(0.0, 80.0, 1.0)
+    """Distances along each traffic vehicle's route at which it is predicted [m]."""
+
+    def __init__(
+        self,
+        env: gym.Env,
+        conflict_distance: float = 3.1,
+        margin: float = 1.0,
+        traffic_acceleration: float = 3.0,
+        traffic_max_speed: float = 9.0,
+        traffic_min_speed: float = 2.0,
+        ego_acceleration: float = 0.7,
+        approach_deceleration: float = 0.5,
+    ):
+        from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv
+
+        super().__init__(env, yield_to_crossing=False)
+        if not isinstance(env.unwrapped, IntersectionEnv):
+            raise TypeError(
+                f"JunctionDriver drives DACERF-Intersection-v0, got {type(env.unwrapped).__name__}: use ScriptedDriver"
+            )
+        self.conflict_distance, self.margin = conflict_distance, margin
+        self.traffic_acceleration, self.traffic_max_speed, self.traffic_min_speed = (
+            traffic_acceleration,
+            traffic_max_speed,
+            traffic_min_speed,
+        )
+        self.ego_acceleration, self.approach_deceleration = ego_acceleration, approach_deceleration
+        self.braking = -float(env.unwrapped.config["acceleration_range"][0])
+        self.junction_half_size = JUNCTION_HALF_SIZE
+
+    def _acceleration(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float, reference_speed: float) -> float:
+        desired = 0.5 * (reference_speed - v_x)
+        for x, y, cos_phi in zip(*(vehicles[:, :2] * self.position_scale).T, vehicles[:, 2], strict=True):
+            gap = x - self.length
+            in_corridor = x > 0 and abs(y) < 2.5
+            if in_corridor and ((cos_phi > 0.5 and gap < 2.0 * max(v_x, 1.0) + 5) or gap < 4.0):
+                desired = -1.0
+        to_line = self._front_to_stop_line()
+        if to_line > -0.5:  # not yet committed to the junction
+            stop = self._stop_point(waypoints[:, :2], v_x, reference_speed, to_line)
+            if stop is not None:
+                room = stop - self.length / 2 - 1.0
+                allowed = min(np.sqrt(2 * self.approach_deceleration * max(room, 0.0)), reference_speed)
+                approach = -self.braking if room <= 0.5 else float(np.clip(allowed - v_x, -self.braking, self.braking))
+                desired = min(desired, approach)
+        return desired
+
+    def _front_to_stop_line(self) -> float:
+        """Distance [m] from the ego's front to the junction's edge on its approach arm (negative once inside)."""
+        return float(self._unwrapped.vehicle.position[1] - self.length / 2 - self.junction_half_size)
+
+    def _stop_point(self, waypoints: np.ndarray, v_x: float, reference_speed: float, to_line: float) -> float | None:
+        """The arc length along the ego's path [m] of the nearest conflict it must and can stop before, if any."""
+        # The ego's path: its position, the waypoints and 30 m straight on, every 0.5 m, with the times of its plan.
+        points = np.vstack([[0.0, 0.0], waypoints])
+        heading = (points[-1] - points[-2]) / max(float(np.linalg.norm(points[-1] - points[-2])), 1e-6)
+        points = np.vstack([points, points[-1] + np.outer(np.arange(1.0, 31.0), heading)])
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))])
+        s = np.arange(0.0, arc[-1], 0.5)
+        path = np.column_stack([np.interp(s, arc, points[:, 0]), np.interp(s, arc, points[:, 1])])
+        times = travel_time(s, max(v_x, 0.0), self.ego_acceleration, max(reference_speed, v_x))
+        tangents = np.gradient(path, axis=0)
+        tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-9)
+        ego_circles = path[:, None, :] + self.CIRCLE_OFFSETS[None, :, None] * tangents[:, None, :]
+        low, high = path.min(axis=0) - 6.0, path.max(axis=0) + 6.0
+        stopping = v_x**2 / (2 * self.braking) + 0.1 * v_x
+        occupancy = 3.0  # [m] before and after the conflicting stretch that the ego's body still covers
+        stops = []
+        for position, cos_phi, speed, route, directions in self._predictions():
+            if cos_phi > 0.87 and (abs(position[1]) < 3.0 or position[0] < 0):
+                continue  # ahead in the ego's lane (car following) or behind it
+            near = np.all((route > low) & (route < high), axis=1)
+            if not near.any():
+                continue
+            distances = self.PREDICTION_DISTANCES[near]
+            circles = route[near][:, None, :] + self.CIRCLE_OFFSETS[None, :, None] * directions[near][:, None, :]
+            gaps = np.linalg.norm(circles[:, None, :, None, :] - ego_circles[None, :, None, :, :], axis=-1).min(axis=(2, 3))
+            traffic_index, ego_index = np.nonzero(gaps < self.conflict_distance)
+            if len(traffic_index) == 0:
+                continue
+            s_in, s_out = s[ego_index].min(), s[ego_index].max()
+            traffic_in = float(
+                travel_time(distances[traffic_index].min(), speed, self.traffic_acceleration, self.traffic_max_speed)
+            )
+            traffic_out = distances[traffic_index].max() / max(speed, self.traffic_min_speed)
+            ego_in = float(np.interp(s_in - occupancy, s, times)) if s_in > occupancy else 0.0
+            ego_out = float(np.interp(s_out + occupancy, s, times))
+            if (
+                ego_in < traffic_out + self.margin
+                and traffic_in - self.margin < ego_out
+                and stopping <= s_in - self.length / 2 + 0.5
+            ):
+                stops.append(s_in)
+        if not stops:
+            return None
+        stop = min(stops)
+        line_stop = to_line + self.length / 2 + 1.0
+        return line_stop if line_stop < stop and stopping <= to_line + 0.5 else stop
+
+    def _predictions(self) -> list[tuple[np.ndarray, float, float, np.ndarray, np.ndarray]]:
+        """
+        Each traffic vehicle within 80 m, in the ego's frame: position, cos of relative heading, speed, positions along
+        its planned route at ``PREDICTION_DISTANCES`` and the unit vectors of its heading there.
+        """
+        env, ego = self._unwrapped, self._unwrapped.vehicle
+        cos_h, sin_h = np.cos(ego.heading), np.sin(ego.heading)
+        rotation = np.array([[cos_h, sin_h], [-sin_h, cos_h]])
+        predictions = []
+        for vehicle in env.road.vehicles:
+            if vehicle is ego or np.linalg.norm(vehicle.position - ego.position) > 80.0:
+                continue
+            route = list(getattr(vehicle, "route", None) or [vehicle.lane_index])
+            if route[0][:2] != vehicle.lane_index[:2]:
+                route = [vehicle.lane_index, *route]
+            start = vehicle.lane.local_coordinates(vehicle.position)[0]
+            along = [
+                env.road.network.position_heading_along_route(route, start + d, 0.0, vehicle.lane_index)
+                for d in self.PREDICTION_DISTANCES
+            ]
+            positions = np.array([p for p, _ in along])
+            headings = np.array([h for _, h in along]) - ego.heading
+            predictions.append(
+                (
+                    rotation @ (vehicle.position - ego.position),
+                    float(np.cos(vehicle.heading - ego.heading)),
+                    float(vehicle.speed),
+                    (positions - ego.position) @ rotation.T,
+                    np.column_stack([np.cos(headings), np.sin(headings)]),
+                )
+            )
+        return predictions
+
+
+DEMONSTRATORS: dict[str, type[ScriptedDriver]] = {"scripted": ScriptedDriver, "junction": JunctionDriver}
+"""The drivers by the names the command-line tools give them."""
+
+
+def add_scripted_transitions(
+    model: OffPolicyAlgorithm, n_transitions: int, driver: type[ScriptedDriver] | None = None, **driver_kwargs: Any
+) -> None:
     """
     Put ``n_transitions`` of the scripted driver in an off-policy model's replay buffer (demonstrations), before it
-    learns: each env of the model's own training ``VecEnv`` is driven by a :class:`ScriptedDriver`, and the
+    learns: each env of the model's own training ``VecEnv`` is driven by a :class:`ScriptedDriver` (or ``driver``), and the
     transitions are stored as SB3 stores its own rollouts (raw observations and rewards with ``VecNormalize``, whose
     statistics see them too; actions in the policy's ``[-1, 1]`` scale; time limits marked as such). They do not count
     as the model's steps (``model.num_timesteps`` stays as it is), and they stay in the buffer until it wraps around.
@@ -129,10 +325,12 @@ def add_scripted_transitions(model: OffPolicyAlgorithm, n_transitions: int, **dr
     :param model: an SB3 off-policy model (DACERF, DACER, SAC, TD3, ...) on a driving scenario's ``DummyVecEnv``
         (possibly inside ``VecNormalize``): the drivers read the env objects, so they must live in this process
     :param n_transitions: how many transitions to add (rounded up to a multiple of the number of envs)
-    :param driver_kwargs: arguments of :class:`ScriptedDriver` (``yield_to_crossing``, ...)
+    :param driver: the demonstrator's class: :class:`ScriptedDriver` (default) or, at the intersection,
+        :class:`JunctionDriver`
+    :param driver_kwargs: arguments of the driver's class (``yield_to_crossing``, ...)
     :raises ValueError: a negative ``n_transitions``, a model whose envs are not in a ``DummyVecEnv``, or more
         transitions than a ``DemonstrationReplayBuffer``'s demonstrations' part has room for
-    :raises TypeError: envs that are not driving scenarios (from :class:`ScriptedDriver`)
+    :raises TypeError: envs that the driver does not drive (from its constructor)
     """
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -158,7 +356,7 @@ def add_scripted_transitions(model: OffPolicyAlgorithm, n_transitions: int, **dr
                 "demonstrations: pass a larger demonstration_size in replay_buffer_kwargs (or add fewer)"
             )
         recording = buffer.recording_demonstrations()
-    drivers = [ScriptedDriver(single, **driver_kwargs) for single in inner.envs]
+    drivers = [(driver or ScriptedDriver)(single, **driver_kwargs) for single in inner.envs]
     model._last_obs = env.reset()  # type: ignore[assignment]  # a VecEnv's observations are arrays
     model._last_original_obs = vec_normalize.get_original_obs() if vec_normalize is not None else model._last_obs
     with recording:
