@@ -122,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--demonstrator",
-        choices=["scripted", "junction"],
+        choices=list(DEMONSTRATORS),
         default="scripted",
         help="with --demonstrations: the driver that gives them, the reference driver or, with --env intersection, "
         "'junction', the gap-accepting JunctionDriver (sb3_dacerf.envs.driving.scripted)",

@@ -36,6 +36,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
+from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv
 
 
 class ScriptedDriver:
@@ -178,8 +179,6 @@ class JunctionDriver(ScriptedDriver):
         ego_acceleration: float = 0.7,
         approach_deceleration: float = 0.5,
     ):
-        from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv
-
         super().__init__(env, yield_to_crossing=False)
         if not isinstance(env.unwrapped, IntersectionEnv):
             raise TypeError(
@@ -193,7 +192,6 @@ class JunctionDriver(ScriptedDriver):
         )
         self.ego_acceleration, self.approach_deceleration = ego_acceleration, approach_deceleration
         self.braking = -float(env.unwrapped.config["acceleration_range"][0])
-        self.junction_half_size = JUNCTION_HALF_SIZE
 
     def _acceleration(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float, reference_speed: float) -> float:
         desired = 0.5 * (reference_speed - v_x)
@@ -214,7 +212,7 @@ class JunctionDriver(ScriptedDriver):
 
     def _front_to_stop_line(self) -> float:
         """Distance [m] from the ego's front to the junction's edge on its approach arm (negative once inside)."""
-        return float(self._unwrapped.vehicle.position[1] - self.length / 2 - self.junction_half_size)
+        return float(self._unwrapped.vehicle.position[1] - self.length / 2 - JUNCTION_HALF_SIZE)
 
     def _stop_point(self, waypoints: np.ndarray, v_x: float, reference_speed: float, to_line: float) -> float | None:
         """The arc length along the ego's path [m] of the nearest conflict it must and can stop before, if any."""
@@ -233,9 +231,7 @@ class JunctionDriver(ScriptedDriver):
         stopping = v_x**2 / (2 * self.braking) + 0.1 * v_x
         occupancy = 3.0  # [m] before and after the conflicting stretch that the ego's body still covers
         stops = []
-        for position, cos_phi, speed, route, directions in self._predictions():
-            if cos_phi > 0.87 and (abs(position[1]) < 3.0 or position[0] < 0):
-                continue  # ahead in the ego's lane (car following) or behind it
+        for speed, route, directions in self._predictions():
             near = np.all((route > low) & (route < high), axis=1)
             if not near.any():
                 continue
@@ -264,10 +260,11 @@ class JunctionDriver(ScriptedDriver):
         line_stop = to_line + self.length / 2 + 1.0
         return line_stop if line_stop < stop and stopping <= to_line + 0.5 else stop
 
-    def _predictions(self) -> list[tuple[np.ndarray, float, float, np.ndarray, np.ndarray]]:
+    def _predictions(self) -> list[tuple[float, np.ndarray, np.ndarray]]:
         """
-        Each traffic vehicle within 80 m, in the ego's frame: position, cos of relative heading, speed, positions along
-        its planned route at ``PREDICTION_DISTANCES`` and the unit vectors of its heading there.
+        Each traffic vehicle within 80 m that may cross the ego's path (not one ahead in its lane, which car following
+        handles, nor one behind it in its direction), in the ego's frame: speed, positions along its planned route at
+        ``PREDICTION_DISTANCES`` and the unit vectors of its heading there.
         """
         env, ego = self._unwrapped, self._unwrapped.vehicle
         cos_h, sin_h = np.cos(ego.heading), np.sin(ego.heading)
@@ -275,6 +272,9 @@ class JunctionDriver(ScriptedDriver):
         predictions = []
         for vehicle in env.road.vehicles:
             if vehicle is ego or np.linalg.norm(vehicle.position - ego.position) > 80.0:
+                continue
+            position = rotation @ (vehicle.position - ego.position)
+            if np.cos(vehicle.heading - ego.heading) > 0.87 and (abs(position[1]) < 3.0 or position[0] < 0):
                 continue
             route = list(getattr(vehicle, "route", None) or [vehicle.lane_index])
             if route[0][:2] != vehicle.lane_index[:2]:
@@ -288,8 +288,6 @@ class JunctionDriver(ScriptedDriver):
             headings = np.array([h for _, h in along]) - ego.heading
             predictions.append(
                 (
-                    rotation @ (vehicle.position - ego.position),
-                    float(np.cos(vehicle.heading - ego.heading)),
                     float(vehicle.speed),
                     (positions - ego.position) @ rotation.T,
                     np.column_stack([np.cos(headings), np.sin(headings)]),
@@ -303,7 +301,7 @@ DEMONSTRATORS: dict[str, type[ScriptedDriver]] = {"scripted": ScriptedDriver, "j
 
 
 def add_scripted_transitions(
-    model: OffPolicyAlgorithm, n_transitions: int, driver: type[ScriptedDriver] | None = None, **driver_kwargs: Any
+    model: OffPolicyAlgorithm, n_transitions: int, driver: type[ScriptedDriver] = ScriptedDriver, **driver_kwargs: Any
 ) -> None:
     """
     Put ``n_transitions`` of the scripted driver in an off-policy model's replay buffer (demonstrations), before it
@@ -357,7 +355,7 @@ def add_scripted_transitions(
                 "demonstrations: pass a larger demonstration_size in replay_buffer_kwargs (or add fewer)"
             )
         recording = buffer.recording_demonstrations()
-    drivers = [(driver or ScriptedDriver)(single, **driver_kwargs) for single in inner.envs]
+    drivers = [driver(single, **driver_kwargs) for single in inner.envs]
     model._last_obs = env.reset()  # type: ignore[assignment]  # a VecEnv's observations are arrays
     model._last_original_obs = vec_normalize.get_original_obs() if vec_normalize is not None else model._last_obs
     with recording:
