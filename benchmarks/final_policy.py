@@ -50,13 +50,6 @@ def load_final_model(folder: Path) -> Any:
     return algorithm.load(folder / "model.zip", device="cpu")
 
 
-def min_q(model: Any, observations: Any, actions: Any) -> Any:
-    """``min_j Q_j(s, a)`` of the model's critics, ``(batch, 1)``."""
-    import torch as th
-
-    return th.min(th.cat(model.critic(observations, actions), dim=1), dim=1, keepdim=True).values
-
-
 def episodes(model: Any, env_id: str, n_episodes: int, high: float, low: float) -> list[str]:
     """Deterministic and stochastic returns of ``n_episodes`` unseen episodes."""
     import gymnasium as gym
@@ -98,6 +91,7 @@ def critic(model: Any, env_id: str, n_episodes: int, settle: int, grid_points: i
 
     from sb3_dacerf import DACERF
     from sb3_dacerf.common.langevin import MinQActionGradient, langevin_targets
+    from sb3_dacerf.common.twin_critic import min_q
 
     env = gym.make(env_id)
     action_dim = int(np.prod(env.action_space.shape or ()))
@@ -119,9 +113,11 @@ def critic(model: Any, env_id: str, n_episodes: int, settle: int, grid_points: i
             columns = [f"  state after {settle} steps of episode {episode} (return so far {total:.0f})"]
             if obs.shape == (6,) and "reacher" in env_id:  # DMC reacher: position (2), to_target (2), velocity (2)
                 columns.append(f"distance to target {np.linalg.norm(obs[2:4]):.2f}, |velocity| {np.abs(obs[4:6]).max():.2f}")
-            columns.append(f"|π(s)| {action_pi.abs().max():.3f}, Q(s, π(s)) {min_q(model, observation, action_pi).item():.1f}")
+            columns.append(
+                f"|π(s)| {action_pi.abs().max():.3f}, Q(s, π(s)) {min_q(model.critic, observation, action_pi).item():.1f}"
+            )
             if grid is not None:
-                q_grid = min_q(model, observation.expand(len(grid), -1), grid).squeeze(1)
+                q_grid = min_q(model.critic, observation.expand(len(grid), -1), grid).squeeze(1)
                 columns.append(f"grid max Q {q_grid.max().item():.1f} at {np.round(grid[int(q_grid.argmax())].numpy(), 2)}")
         if isinstance(model, DACERF):
             th.manual_seed(episode)
@@ -136,7 +132,7 @@ def critic(model: Any, env_id: str, n_episodes: int, settle: int, grid_points: i
                 normalize_gradient=model.langevin_normalize_gradient,
             )
             with th.no_grad():
-                gain = (min_q(model, observations, targets) - min_q(model, observations, actions)).mean().item()
+                gain = (min_q(model.critic, observations, targets) - min_q(model.critic, observations, actions)).mean().item()
             columns.append(f"Langevin mean move {np.round((targets - actions).mean(0).numpy(), 2)}, gain {gain:.2f}")
         lines.append("; ".join(columns))
     env.close()

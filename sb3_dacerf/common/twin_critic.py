@@ -153,7 +153,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
 
     def _min_q(self, observations: PyTorchObs, actions: th.Tensor) -> th.Tensor:
         """``min_j Q_j(s, a)`` over the critics, shape ``(batch, 1)``."""
-        return th.min(th.cat(self.critic(observations, actions), dim=1), dim=1, keepdim=True).values
+        return min_q(self.critic, observations, actions)
 
     def _critic_parameters(self) -> list[th.nn.Parameter]:
         """The critic's own parameters (not those of a features extractor shared with the actor), to freeze."""
@@ -388,6 +388,16 @@ def check_action_space(action_space: spaces.Space, algorithm: str) -> None:
             f"{algorithm} needs a bounded action space to rescale actions to [-1, 1], got low={action_space.low}, "
             f"high={action_space.high}. Give the Box finite bounds (e.g. gymnasium.wrappers.ClipAction after setting them)."
         )
+
+
+def min_q(
+    critic: Callable[[PyTorchObs, th.Tensor], tuple[th.Tensor, ...]], observations: PyTorchObs, actions: th.Tensor
+) -> th.Tensor:
+    """
+    ``min_j Q_j(s, a)`` over the Q-networks of an SB3 ``ContinuousCritic`` (DACERF's, DACER's, SAC's, TD3's),
+    shape ``(batch, 1)``.
+    """
+    return th.min(th.cat(critic(observations, actions), dim=1), dim=1, keepdim=True).values
 
 
 def resolve_target_entropy(target_entropy: Any, auto: float) -> float:
