@@ -90,7 +90,6 @@ def critic(model: Any, env_id: str, n_episodes: int, settle: int, grid_points: i
     import torch as th
 
     from sb3_dacerf import DACERF
-    from sb3_dacerf.common.langevin import MinQActionGradient, langevin_targets
     from sb3_dacerf.common.twin_critic import min_q
 
     env = gym.make(env_id)
@@ -123,14 +122,7 @@ def critic(model: Any, env_id: str, n_episodes: int, settle: int, grid_points: i
             th.manual_seed(episode)
             observations = observation.expand(256, -1)
             actions = (action_pi + model.actor.exploration_std.detach() * th.randn(256, action_dim)).clamp(-1.0, 1.0)
-            targets = langevin_targets(
-                MinQActionGradient(model.critic, observations),
-                actions,
-                n_steps=model.langevin_steps,
-                step_size=model.langevin_step_size,
-                temperature=model.langevin_temperature,
-                normalize_gradient=model.langevin_normalize_gradient,
-            )
+            targets = model.langevin_targets(observations, actions)
             with th.no_grad():
                 gain = (min_q(model.critic, observations, targets) - min_q(model.critic, observations, actions)).mean().item()
             columns.append(f"Langevin mean move {np.round((targets - actions).mean(0).numpy(), 2)}, gain {gain:.2f}")

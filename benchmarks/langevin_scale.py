@@ -32,7 +32,7 @@ def describe(folder: Path, batch_size: int, seed: int) -> str:
     from learning_curves import load_checkpoint
 
     from sb3_dacerf import DACERF
-    from sb3_dacerf.common.langevin import MinQActionGradient, langevin_targets
+    from sb3_dacerf.common.langevin import MinQActionGradient
 
     with tempfile.TemporaryDirectory() as tmp:  # a copy: the run may be rewriting its checkpoint meanwhile
         copy = Path(tmp) / "checkpoint"
@@ -52,14 +52,7 @@ def describe(folder: Path, batch_size: int, seed: int) -> str:
     ]
     for label, normalize in (("paper", False), ("normalised", True)):
         th.manual_seed(seed + 1)  # the same Langevin noise for both updates
-        targets = langevin_targets(
-            MinQActionGradient(model.critic, observations),
-            actions,
-            n_steps=model.langevin_steps,
-            step_size=model.langevin_step_size,
-            temperature=model.langevin_temperature,
-            normalize_gradient=normalize,
-        )
+        targets = model.langevin_targets(observations, actions, normalize_gradient=normalize)
         with th.no_grad():
             gain = (model._min_q(observations, targets) - q_buffer).mean()
         at_bound = (targets.abs() > 0.999).float().mean()

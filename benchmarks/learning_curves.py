@@ -61,6 +61,8 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-delay1": ("DACERF", dict(policy_delay=1)),
     "dacerf-gradnorm": ("DACERF", dict(langevin_normalize_gradient=True)),
     "dacerf-steps3": ("DACERF", dict(n_sampling_steps=3)),
+    "dacerf-nstep3": ("DACERF", dict(n_steps=3)),  # 3-step returns in the critic targets (SB3's NStepReplayBuffer)
+    "dacerf-utd2": ("DACERF", dict(gradient_steps=2)),  # two gradient steps per environment step (twice the updates)
     "dacerf-tau001": ("DACERF", dict(tau=0.001)),
     "dacerf-noise": ("DACERF", dict(ent_coef=0.0, action_noise_std=0.1)),
     # version 0.1.0's short-budget settings: SAC's tau and Gaussian action noise 0.1, no regulator, "q_scale" weights

@@ -14,6 +14,7 @@ from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.policies import ContinuousCritic
 
 from sb3_dacerf import DACERF
+from sb3_dacerf.common.langevin import MinQActionGradient, langevin_targets
 from sb3_dacerf.common.policies import LayerNormCritic
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
@@ -244,6 +245,46 @@ def test_normalized_langevin_gradient_trains_and_is_saved(tmp_path, fast):
     assert model.logger.name_to_value["train/langevin_gain"] > 0
     model.save(tmp_path / "normalized")
     assert DACERF.load(tmp_path / "normalized").langevin_normalize_gradient is True
+
+
+def test_langevin_targets_method_follows_the_model_settings_and_leaves_the_critic_untouched(fast):
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, langevin_steps=5, **fast)
+    model.learn(120)
+    batch = model.replay_buffer.sample(64)
+    observations, actions = batch.observations, batch.actions
+    with th.no_grad():  # steep critics, so that normalising the gradient changes the targets
+        for q_network in model.critic.q_networks:
+            q_network[-1].weight.mul_(1e3)
+    model.critic.optimizer.zero_grad(set_to_none=True)
+    th.manual_seed(1)
+    targets = model.langevin_targets(observations, actions)
+    th.manual_seed(1)
+    expected = langevin_targets(
+        MinQActionGradient(model.critic, observations),
+        actions,
+        n_steps=5,
+        step_size=model.langevin_step_size,
+        temperature=model.langevin_temperature,
+    )
+    assert th.equal(targets, expected) and not targets.requires_grad
+    assert all(param.grad is None for param in model.critic.parameters())
+    assert all(param.requires_grad for param in model.critic.parameters())
+    th.manual_seed(1)
+    normalized = model.langevin_targets(observations, actions, normalize_gradient=True)
+    th.manual_seed(1)
+    assert th.equal(
+        normalized,
+        langevin_targets(
+            MinQActionGradient(model.critic, observations),
+            actions,
+            n_steps=5,
+            step_size=model.langevin_step_size,
+            temperature=model.langevin_temperature,
+            normalize_gradient=True,
+        ),
+    )
+    assert not th.equal(normalized, targets)
+    assert model.langevin_normalize_gradient is False  # the override leaves the model's setting as it was
 
 
 class NanRewardPendulum(gym.Wrapper):

@@ -311,6 +311,30 @@ class DACERF(TwinCriticAlgorithm):
             if finite:
                 self.logger.record(f"train/{key}", np.mean(finite))
 
+    def langevin_targets(self, observations: th.Tensor, actions: th.Tensor, normalize_gradient: bool | None = None) -> th.Tensor:
+        """
+        The Langevin targets ``a*`` (Algorithm 1) that the actor update would build from ``actions`` at
+        ``observations``: this model's ``langevin_steps``, ``langevin_step_size``, ``langevin_temperature`` and
+        ``compile_langevin``, on ``∇_a min_j Q_j(s, a)`` of its twin critics (whose parameters get no gradient).
+
+        :param observations: A batch of (preprocessed) observations
+        :param actions: The starting actions, in the policy's [-1, 1] space, one per observation
+        :param normalize_gradient: Overrides the model's ``langevin_normalize_gradient`` (``None``: keep it)
+        :return: ``a*``, detached, the shape of ``actions``
+        """
+        if normalize_gradient is None:
+            normalize_gradient = self.langevin_normalize_gradient
+        langevin = compiled_langevin_targets() if self.compile_langevin else langevin_targets
+        with frozen(self._critic_parameters()):
+            return langevin(
+                MinQActionGradient(self.critic, observations),
+                actions,
+                n_steps=self.langevin_steps,
+                step_size=self.langevin_step_size,
+                temperature=self.langevin_temperature,
+                normalize_gradient=normalize_gradient,
+            )
+
     def actor_loss_terms(self, replay_data: Any) -> dict[str, th.Tensor]:
         """
         The two terms of the actor loss ``J_F`` on a replay batch (Algorithm 2), with what they are made of.
@@ -324,15 +348,7 @@ class DACERF(TwinCriticAlgorithm):
         observations, actions_buffer = replay_data.observations, replay_data.actions
         with frozen(self._critic_parameters()):
             # Langevin targets a* from the replay actions (Algorithm 1), gradients w.r.t. actions only
-            langevin = compiled_langevin_targets() if self.compile_langevin else langevin_targets
-            actions_star = langevin(
-                MinQActionGradient(self.critic, observations),  # ∇_a min_j Q_j(s, a)
-                actions_buffer,
-                n_steps=self.langevin_steps,
-                step_size=self.langevin_step_size,
-                temperature=self.langevin_temperature,
-                normalize_gradient=self.langevin_normalize_gradient,
-            )
+            actions_star = self.langevin_targets(observations, actions_buffer)
             with th.no_grad():
                 q_values_star = self._min_q(observations, actions_star)
                 q_values_buffer = self._min_q(observations, actions_buffer)
