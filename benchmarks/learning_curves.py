@@ -69,6 +69,7 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-tuned": ("DACERF", dict(ent_coef=0.0, flow_matching_weights="q_scale", action_noise_std=0.1)),
     "dacer": ("DACER", {}),
     "sac": ("SAC", {}),
+    "sac-nstep3": ("SAC", dict(n_steps=3)),
     # a discount whose horizon 1 / (1 - gamma) = 500 steps covers a 400-step intersection episode (the driving
     # rewards are audited as undiscounted episode totals)
     "sac-gamma998": ("SAC", dict(gamma=0.998)),
