@@ -118,6 +118,8 @@ def sample_dacerf_params(
         "flow_matching_weights": trial.suggest_categorical("flow_matching_weights", ["gain", "q_scale", "td3bc", "flowrl"]),
         "critic_layer_norm": trial.suggest_categorical("critic_layer_norm", [False, True]),
         "langevin_normalize_gradient": trial.suggest_categorical("langevin_normalize_gradient", [False, True]),
+        # one-step targets (the default, as in the paper) or n-step returns
+        "n_steps": trial.suggest_categorical("n_steps", [1, 3, 5]),
     }
     trial.set_user_attr("batch_size", 2 ** sampled["batch_size_pow"])
     return convert_dacerf_params(sampled, policy_kwargs)

@@ -6,6 +6,7 @@ import pytest
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import HerReplayBuffer
+from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.callbacks import CheckpointCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import BitFlippingEnv, SimpleMultiObsEnv
@@ -53,6 +54,20 @@ def test_defaults_and_paper_preset():
     assert type(paper.critic) is ContinuousCritic
     mlp = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=False))
     assert type(mlp.critic) is ContinuousCritic and type(mlp.critic_target) is ContinuousCritic
+
+
+def test_n_step_returns_are_saved_and_loaded_without_sb3_warning_they_are_ignored(tmp_path, recwarn):
+    model = DACERF("MlpPolicy", "Pendulum-v1", n_steps=3)
+    assert type(model.replay_buffer) is NStepReplayBuffer and model.replay_buffer.n_steps == 3
+    assert model.replay_buffer.gamma == model.gamma
+    model.save(tmp_path / "nstep")
+    loaded = DACERF.load(tmp_path / "nstep")
+    assert loaded.n_steps == 3 and type(loaded.replay_buffer) is NStepReplayBuffer
+    # SB3 warns that n_steps "is ignored" with a custom buffer class; the reloaded NStepReplayBuffer is not one
+    assert not [warning for warning in recwarn if "is ignored" in str(warning.message)]
+    # one-step targets by default and in the paper preset
+    assert type(DACERF("MlpPolicy", "Pendulum-v1").replay_buffer) is ReplayBuffer
+    assert DACERF("MlpPolicy", "Pendulum-v1", **PAPER_HYPERPARAMETERS).n_steps == 1
 
 
 def test_a_model_saved_without_the_critic_setting_loads_with_mlp_critics(tmp_path):
@@ -221,6 +236,8 @@ def test_unbounded_actions_are_refused():
         ("flow_matching_coef", float("inf")),
         ("n_sampling_steps", 0),
         ("flow_matching_coef", -1.0),
+        ("n_steps", 0),
+        ("n_steps", 2.5),
     ],
 )
 def test_invalid_hyperparameters(name, value):

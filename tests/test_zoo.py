@@ -185,6 +185,7 @@ def test_sampler_builds_dacerf():
         assert any(isinstance(m, th.nn.LayerNorm) for m in model.critic.modules()) == layer_norm
         assert model.ent_coef == hyperparams["ent_coef"] and hyperparams["ent_coef"] in ("auto", 0.0)
         assert model.langevin_normalize_gradient == hyperparams["langevin_normalize_gradient"]
+        assert model.n_steps == hyperparams["n_steps"] in (1, 3, 5)
         seen |= {("ent_coef", hyperparams["ent_coef"]), ("layer_norm", layer_norm)}
         seen.add(("normalize_gradient", hyperparams["langevin_normalize_gradient"]))
         study.tell(trial, 0.0)
@@ -297,6 +298,7 @@ def test_optimize_two_workers_share_one_study(tmp_path):
         "flow_matching_weights",
         "critic_layer_norm",
         "langevin_normalize_gradient",
+        "n_steps",
     }
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import maybe_make_env
-from stable_baselines3.common.buffers import ReplayBufferSamples
+from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBufferSamples
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
@@ -105,6 +105,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         "batch_size": integer_at_least(1, "a positive integer"),
         "tau": HyperparameterRule(lambda value: 0 < value <= 1, "in (0, 1]"),
         "gamma": HyperparameterRule(lambda value: 0 <= value <= 1, "in [0, 1]"),
+        "n_steps": integer_at_least(1, "a positive integer (1: one-step targets)"),
     }
 
     policy: TwinCriticPolicy
@@ -131,7 +132,12 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         # Before anything is built: a wrong value fails here, with its valid range
         self._check_hyperparameters()
-        super()._setup_model()
+        with warnings.catch_warnings():
+            if self.replay_buffer_class is NStepReplayBuffer and self.replay_buffer_kwargs.get("n_steps") == self.n_steps:
+                # A loaded model's NStepReplayBuffer is the one SB3 chose for its n_steps, not a custom buffer whose
+                # n_steps SB3 would ignore: its warning would be wrong here
+                warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom")
+            super()._setup_model()
         self._create_aliases()
         # Running mean and running var
         self.batch_norm_stats = get_parameters_by_name(self.critic, ["running_"])
