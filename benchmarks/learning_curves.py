@@ -43,6 +43,8 @@ from typing import Any
 
 import numpy as np
 
+from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES, DRIVING_ENV_IDS
+
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # name: (algorithm, constructor kwargs); "action_noise_std" becomes a NormalActionNoise
     "dacerf": ("DACERF", {}),
@@ -486,7 +488,7 @@ def main() -> None:
     )
     parser.add_argument(
         "--demonstrator",
-        choices=["scripted", "junction"],
+        choices=DEMONSTRATOR_NAMES,
         default="scripted",
         help="with --demonstrations: the driver that gives them (junction: the intersection's gap-accepting driver)",
     )
@@ -506,7 +508,6 @@ def main() -> None:
         parser.error(f"--n-envs must be at least 1, got {args.n_envs}")
     if args.demonstrations < 0:
         parser.error(f"--demonstrations must be at least 0, got {args.demonstrations}")
-    from sb3_dacerf.envs.driving import DRIVING_ENV_IDS
 
     if args.demonstrations and args.env not in DRIVING_ENV_IDS:
         parser.error(

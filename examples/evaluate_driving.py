@@ -34,6 +34,7 @@ import gymnasium as gym
 import numpy as np
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
+from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
 
 SCENARIOS = {"multilane": "DACERF-Multilane-v0", "intersection": "DACERF-Intersection-v0"}
 
@@ -243,7 +244,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--scripted",
         nargs="?",
         const="scripted",
-        choices=["scripted", "junction"],
+        choices=DEMONSTRATOR_NAMES,
         help="evaluate a scripted driver instead of a model (needs --env): the reference driver, or 'junction', the "
         "intersection's gap-accepting demonstrator",
     )

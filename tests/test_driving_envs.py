@@ -364,6 +364,15 @@ def test_normalized_action_keeps_the_increment_bounds_with_zero_at_the_centre(en
     assert (raw.low + raw.high)[0] / 2 == pytest.approx(-0.075)
 
 
+def test_demonstrator_names_are_the_drivers_names():
+    # the command-line tools offer DEMONSTRATOR_NAMES without importing highway-env; each must name a driver
+    from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
+    from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS, JunctionDriver, ScriptedDriver
+
+    assert DEMONSTRATOR_NAMES == tuple(DEMONSTRATORS)
+    assert DEMONSTRATORS == {"scripted": ScriptedDriver, "junction": JunctionDriver}
+
+
 @pytest.mark.parametrize(
     "config",
     [{"normalized_action": True}, {"action_mode": "target"}, {"action_mode": "target", "steering_feedforward": True}],

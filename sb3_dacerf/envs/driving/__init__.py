@@ -22,6 +22,10 @@ DRIVING_ENV_IDS = {
     "DACERF-Intersection-v0": "sb3_dacerf.envs.driving.intersection:IntersectionEnv",
 }
 
+DEMONSTRATOR_NAMES = ("scripted", "junction")
+"""The names of the scripted drivers in :data:`sb3_dacerf.envs.driving.scripted.DEMONSTRATORS`, importable without
+highway-env (for command-line choices)."""
+
 
 def register_driving_envs() -> None:
     """Register the driving environment ids with Gymnasium (idempotent, imports no simulator)."""
