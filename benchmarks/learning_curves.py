@@ -43,8 +43,6 @@ from typing import Any
 
 import numpy as np
 
-from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES, DRIVING_ENV_IDS
-
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # name: (algorithm, constructor kwargs); "action_noise_std" becomes a NormalActionNoise
     "dacerf": ("DACERF", {}),
@@ -419,6 +417,8 @@ def collect_runs(folder: Path, variants: list[str]) -> list[dict[str, Any]]:
 
 
 def main() -> None:
+    from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES, DRIVING_ENV_IDS
+
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Pendulum-v1")
     parser.add_argument(

@@ -34,6 +34,7 @@ from gymnasium import spaces
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
+from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
 from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv
@@ -296,7 +297,7 @@ class JunctionDriver(ScriptedDriver):
         return predictions
 
 
-DEMONSTRATORS: dict[str, type[ScriptedDriver]] = {"scripted": ScriptedDriver, "junction": JunctionDriver}
+DEMONSTRATORS: dict[str, type[ScriptedDriver]] = dict(zip(DEMONSTRATOR_NAMES, (ScriptedDriver, JunctionDriver), strict=True))
 """The drivers by the names the command-line tools give them."""
 
 
