@@ -195,6 +195,9 @@ class TwinCriticPolicy(BasePolicy):
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
     :param critic_layer_norm: Use critics with ``LayerNorm`` after every hidden layer (:class:`LayerNormCritic`)
         instead of SB3's plain MLP critics
+    :param critic_batch_renorm: Use CrossQ's critics, with batch renormalisation before every linear layer
+        (:class:`BatchRenormCritic`, needs sb3-contrib) and no target networks: the algorithm then bootstraps from
+        the critics themselves, in one forward pass over the current and the next state-action pairs
     """
 
     actor_class: ClassVar[type[GenerativeActor]]
@@ -218,7 +221,13 @@ class TwinCriticPolicy(BasePolicy):
         share_features_extractor: bool = False,
         actor_kwargs: dict[str, Any] | None = None,
         critic_layer_norm: bool = False,
+        critic_batch_renorm: bool = False,
     ):
+        if critic_layer_norm and critic_batch_renorm:
+            raise ValueError(
+                "critic_layer_norm=True and critic_batch_renorm=True both choose the critics' normalisation: "
+                "pass critic_layer_norm=False with critic_batch_renorm=True (CrossQ's critics)"
+            )
         super().__init__(
             observation_space,
             action_space,
@@ -255,6 +264,7 @@ class TwinCriticPolicy(BasePolicy):
         )
         self.share_features_extractor = share_features_extractor
         self.critic_layer_norm = critic_layer_norm
+        self.critic_batch_renorm = critic_batch_renorm
 
         self._build(lr_schedule)
 
@@ -301,6 +311,7 @@ class TwinCriticPolicy(BasePolicy):
                 features_extractor_kwargs=self.features_extractor_kwargs,
                 share_features_extractor=self.share_features_extractor,
                 critic_layer_norm=self.critic_layer_norm,
+                critic_batch_renorm=self.critic_batch_renorm,
             )
         )
         return data
@@ -311,7 +322,11 @@ class TwinCriticPolicy(BasePolicy):
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        critic_class = LayerNormCritic if self.critic_layer_norm else ContinuousCritic
+        critic_class: type[ContinuousCritic] = ContinuousCritic
+        if self.critic_layer_norm:
+            critic_class = LayerNormCritic
+        elif self.critic_batch_renorm:
+            critic_class = BatchRenormCritic
         return critic_class(**critic_kwargs).to(self.device)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
@@ -375,3 +390,63 @@ class LayerNormCritic(ContinuousCritic):
             q_net = nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, post_linear_modules=[nn.LayerNorm]))
             self.add_module(f"qf{idx}", q_net)
             self.q_networks.append(q_net)
+
+
+class BatchRenormCritic(ContinuousCritic):
+    """
+    SB3's twin ``ContinuousCritic`` with CrossQ's batch renormalisation (sb3-contrib's ``BatchRenorm1d``, momentum
+    0.01) before every linear layer. The layers normalise with the running statistics except while
+    :meth:`set_bn_training_mode` has them in training mode: the algorithm turns that on only for the critic update's
+    joint forward pass over ``(s, a)`` and ``(s', a')``. Same arguments as ``ContinuousCritic``.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        n_critics: int = 2,
+        share_features_extractor: bool = True,
+    ):
+        try:
+            from sb3_contrib.common.torch_layers import BatchRenorm1d
+        except ImportError as error:
+            raise ImportError(
+                "critic_batch_renorm=True uses sb3-contrib's BatchRenorm1d: pip install 'sb3-contrib>=2.4'"
+            ) from error
+        super().__init__(
+            observation_space,
+            action_space,
+            net_arch,
+            features_extractor,
+            features_dim,
+            activation_fn=activation_fn,
+            normalize_images=normalize_images,
+            n_critics=n_critics,
+            share_features_extractor=share_features_extractor,
+        )
+        input_dim = features_dim + get_action_dim(action_space)
+        self.q_networks = nn.ModuleList()  # type: ignore[assignment]
+        for idx in range(n_critics):
+            q_net = nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, pre_linear_modules=[BatchRenorm1d]))
+            self.add_module(f"qf{idx}", q_net)
+            self.q_networks.append(q_net)
+        self.set_bn_training_mode(False)
+
+    def set_training_mode(self, mode: bool) -> None:
+        super().set_training_mode(mode)
+        # The normalisation layers leave running-statistics mode only through set_bn_training_mode
+        self.set_bn_training_mode(False)
+
+    def set_bn_training_mode(self, mode: bool) -> None:
+        """
+        :param mode: Normalise with the batch's statistics and update the running ones (``True``), or normalise with
+            the running statistics (``False``)
+        """
+        for module in self.modules():
+            if type(module).__name__ == "BatchRenorm1d":
+                module.train(mode)

@@ -25,7 +25,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorch
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 from torch.nn import functional as F
 
-from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
+from sb3_dacerf.common.policies import BatchRenormCritic, GenerativeActor, TwinCriticPolicy
 from sb3_dacerf.common.utils import atomic_path, non_finite_entries, save_path_with_suffix
 
 SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAlgorithm")
@@ -165,6 +165,10 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         """The critic's own parameters (not those of a features extractor shared with the actor), to freeze."""
         return self.critic.optimizer.param_groups[0]["params"]
 
+    def _bootstraps_from_critic(self) -> bool:
+        """CrossQ's critics (``critic_batch_renorm``): targets from the critics themselves, no target networks."""
+        return bool(getattr(self.policy, "critic_batch_renorm", False))
+
     def _update_critic(self, replay_data: ReplayBufferSamples) -> float:
         """
         One gradient step on ``J_Q = E[(r + γ (1 - done) min_j Q̄_j(s', a') - Q_i(s, a))²]`` with ``a' ~ π(·|s')``.
@@ -175,11 +179,30 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         with th.no_grad():
             next_actions = self.actor(replay_data.next_observations)
-            next_q_values = th.cat(self.critic_target(replay_data.next_observations, next_actions), dim=1)
+        if self._bootstraps_from_critic():
+            # CrossQ: no target networks; one forward pass over (s, a) and (s', a') so that the batch statistics are
+            # those of both, in training mode for this pass only
+            assert isinstance(self.critic, BatchRenormCritic)
+            self.critic.set_bn_training_mode(True)
+            all_q_values = th.cat(
+                self.critic(
+                    _cat_observations(replay_data.observations, replay_data.next_observations),
+                    th.cat([replay_data.actions, next_actions], dim=0),
+                ),
+                dim=1,
+            )
+            self.critic.set_bn_training_mode(False)
+            current, next_q_values = th.split(all_q_values, replay_data.actions.shape[0], dim=0)
+            current_q_values: tuple[th.Tensor, ...] = tuple(current.T[..., None])
+            next_q_values = next_q_values.detach()
+        else:
+            with th.no_grad():
+                next_q_values = th.cat(self.critic_target(replay_data.next_observations, next_actions), dim=1)
+            current_q_values = self.critic(replay_data.observations, replay_data.actions)
+        with th.no_grad():
             next_q_values, _ = th.min(next_q_values, dim=1, keepdim=True)
             target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q_values
 
-        current_q_values = self.critic(replay_data.observations, replay_data.actions)
         critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q_values) for current_q in current_q_values)
         assert isinstance(critic_loss, th.Tensor)  # for type checker
         loss = self._checked(critic_loss, "critic loss", replay_data)
@@ -190,7 +213,9 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         return loss
 
     def _update_targets(self) -> None:
-        """Polyak update of the target critics: ``Q̄ <- (1 - τ) Q̄ + τ Q``."""
+        """Polyak update of the target critics: ``Q̄ <- (1 - τ) Q̄ + τ Q`` (none with CrossQ's critics)."""
+        if self._bootstraps_from_critic():
+            return
         polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
         # Copy running stats, see GH issue #996
         polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
@@ -435,3 +460,12 @@ def merge_policy_kwarg(policy_kwargs: dict[str, Any], name: str, value: Any, def
             f"give {name} once, as an argument of {algorithm}(...) or in policy_kwargs."
         )
     return {**policy_kwargs, name: value if value is not None else policy_kwargs.get(name, default)}
+
+
+def _cat_observations(first: PyTorchObs, second: PyTorchObs) -> PyTorchObs:
+    """Two batches of observations (tensors, or dicts of tensors) as one."""
+    if isinstance(first, dict):
+        assert isinstance(second, dict)
+        return {key: th.cat([first[key], second[key]], dim=0) for key in first}
+    assert isinstance(first, th.Tensor) and isinstance(second, th.Tensor)
+    return th.cat([first, second], dim=0)

@@ -216,8 +216,8 @@ class DACERF(TwinCriticAlgorithm):
         self.policy_kwargs = merge_policy_kwarg(self.policy_kwargs, "n_sampling_steps", n_sampling_steps, 1, "DACERF")
         # LayerNorm critics unless policy_kwargs say otherwise (benchmarks/learning.md, "Critic options"). Written into
         # policy_kwargs, so a saved model records its critics: files saved before this default (no such key) load
-        # with SB3's MLP critics, which they hold.
-        self.policy_kwargs.setdefault("critic_layer_norm", True)
+        # with SB3's MLP critics, which they hold. CrossQ's critics (critic_batch_renorm=True) replace LayerNorm.
+        self.policy_kwargs.setdefault("critic_layer_norm", not self.policy_kwargs.get("critic_batch_renorm", False))
         # torch.compile of the Langevin loop (an option: compiling costs ~30 s at the first update)
         self.compile_langevin = compile_langevin
 

@@ -1,0 +1,67 @@
+"""CrossQ's critics (``policy_kwargs=dict(critic_batch_renorm=True)``): batch renormalisation, no target networks."""
+
+import pytest
+import torch as th
+
+from sb3_dacerf import DACER, DACERF
+from sb3_dacerf.common.policies import BatchRenormCritic
+
+pytest.importorskip("sb3_contrib")
+
+
+def batch_renorm_layers(critic: th.nn.Module) -> list[th.nn.Module]:
+    return [module for module in critic.modules() if type(module).__name__ == "BatchRenorm1d"]
+
+
+@pytest.fixture(params=[DACERF, DACER])
+def model_class(request) -> type:
+    return request.param
+
+
+def test_critics_learn_without_targets_and_update_statistics_once_per_critic_update(model_class, fast):
+    fast["policy_kwargs"]["critic_batch_renorm"] = True
+    if model_class is DACER:
+        fast["policy_kwargs"]["critic_layer_norm"] = False
+    model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
+    assert isinstance(model.critic, BatchRenormCritic)
+    # one layer before each of the three linear layers of each of the two critics
+    assert len(batch_renorm_layers(model.critic)) == 6
+    target_before = {name: value.clone() for name, value in model.critic_target.state_dict().items()}
+    critic_before = [param.clone() for param in model.critic.parameters()]
+    model.learn(200)
+    # the critics learned; their targets were never updated (nor used)
+    assert any(not th.equal(before, after) for before, after in zip(critic_before, model.critic.parameters(), strict=True))
+    for name, value in model.critic_target.state_dict().items():
+        assert th.equal(value, target_before[name]), name
+    for layer in batch_renorm_layers(model.critic):
+        # the statistics moved in the critic update's joint pass only: not in the actor's or the Langevin targets' passes
+        assert layer.steps.item() == model._n_updates == 150
+        assert not th.equal(layer.ra_mean, th.zeros_like(layer.ra_mean))
+        # and outside that pass the layers normalise with the running statistics
+        assert not layer.training
+
+
+@pytest.mark.parametrize("model_class", [DACERF])
+def test_saved_and_loaded_with_their_running_statistics(tmp_path, fast):
+    fast["policy_kwargs"]["critic_batch_renorm"] = True
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, **fast)
+    # CrossQ's critics replace the default LayerNorm critics
+    assert model.policy_kwargs["critic_layer_norm"] is False
+    model.learn(100)
+    model.save(tmp_path / "crossq")
+    loaded = DACERF.load(tmp_path / "crossq")
+    assert isinstance(loaded.critic, BatchRenormCritic)
+    for layer, loaded_layer in zip(batch_renorm_layers(model.critic), batch_renorm_layers(loaded.critic), strict=True):
+        assert th.equal(layer.ra_var, loaded_layer.ra_var) and not loaded_layer.training
+    observations = th.rand((7, 3))
+    actions = th.rand((7, 1)) * 2 - 1
+    with th.no_grad():
+        for q_value, loaded_q_value in zip(
+            model.critic(observations, actions), loaded.critic(observations, actions), strict=True
+        ):
+            assert th.allclose(q_value, loaded_q_value)
+
+
+def test_layer_norm_and_batch_renorm_together_are_refused():
+    with pytest.raises(ValueError, match="pass critic_layer_norm=False with critic_batch_renorm=True"):
+        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=True, critic_batch_renorm=True))
