@@ -58,6 +58,8 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-flowrl": ("DACERF", dict(flow_matching_weights="flowrl")),
     "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=True))),  # = the defaults (named so in earlier results)
     "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=False))),  # SB3's MLP critics (0.1.0's)
+    # CrossQ's learning rate 1e-3 and Adam betas (0.5, 0.999), with the default critics and their targets
+    "dacerf-lr": ("DACERF", dict(learning_rate=1e-3, policy_kwargs=dict(optimizer_kwargs=dict(betas=(0.5, 0.999))))),
     # CrossQ's critics: batch renormalisation, no target networks (same width, learning rate and Adam as the defaults)
     "dacerf-crossq": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=False, critic_batch_renorm=True))),
     # ... with CrossQ's learning rate 1e-3 and Adam betas (0.5, 0.999) for the actor and the critics
