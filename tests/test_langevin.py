@@ -7,7 +7,7 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
 
 from sb3_dacerf.common.langevin import MinQActionGradient, autograd_action_gradient, langevin_targets
-from sb3_dacerf.common.policies import LayerNormCritic
+from sb3_dacerf.common.policies import BatchRenormCritic, LayerNormCritic
 from sb3_dacerf.common.utils import frozen
 
 
@@ -102,11 +102,16 @@ def test_normalized_gradient_leaves_small_gradients_unchanged():
 
 
 def make_critic(
-    activation_fn: type[nn.Module], observation_dim: int = 5, action_dim: int = 3, n_critics: int = 2, layer_norm: bool = False
+    activation_fn: type[nn.Module],
+    observation_dim: int = 5,
+    action_dim: int = 3,
+    n_critics: int = 2,
+    layer_norm: bool = False,
+    batch_renorm: bool = False,
 ):
     observation_space = gym.spaces.Box(-1, 1, (observation_dim,))
     action_space = gym.spaces.Box(-1, 1, (action_dim,))
-    critic_class = LayerNormCritic if layer_norm else ContinuousCritic
+    critic_class = LayerNormCritic if layer_norm else BatchRenormCritic if batch_renorm else ContinuousCritic
     return critic_class(
         observation_space,
         action_space,
@@ -118,22 +123,36 @@ def make_critic(
     )
 
 
-@pytest.mark.parametrize("layer_norm", [False, True])
+@pytest.mark.parametrize("normalisation", [None, "layer_norm", "batch_renorm", "batch_renorm_training"])
 @pytest.mark.parametrize("n_critics", [1, 2, 3])
 @pytest.mark.parametrize("activation_fn", [nn.ReLU, nn.LeakyReLU, nn.Tanh, nn.ELU])
-def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics, layer_norm):
-    """The written-out gradient (ReLU, LeakyReLU, Tanh, with or without LayerNorm) and the autograd fallback (ELU)
-    equal autograd of min_j Q_j."""
+def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics, normalisation):
+    """The written-out gradient (ReLU, LeakyReLU, Tanh; without normalisation, with LayerNorm, or with batch
+    renormalisation in running-statistics mode) and the autograd fallback (ELU, or batch renormalisation in training
+    mode) equal autograd of min_j Q_j."""
+    if normalisation is not None and normalisation.startswith("batch_renorm"):
+        pytest.importorskip("sb3_contrib")
     th.manual_seed(3)
-    critic = make_critic(activation_fn, n_critics=n_critics, layer_norm=layer_norm)
-    if layer_norm:  # away from LayerNorm's initial γ = 1, β = 0
-        for module in critic.modules():
-            if isinstance(module, nn.LayerNorm):
-                nn.init.normal_(module.weight, 1.0, 0.3)
-                nn.init.normal_(module.bias, 0.0, 0.3)
+    critic = make_critic(
+        activation_fn,
+        n_critics=n_critics,
+        layer_norm=normalisation == "layer_norm",
+        batch_renorm=normalisation is not None and normalisation.startswith("batch_renorm"),
+    )
+    for module in critic.modules():
+        if isinstance(module, nn.LayerNorm):  # away from LayerNorm's initial γ = 1, β = 0
+            nn.init.normal_(module.weight, 1.0, 0.3)
+            nn.init.normal_(module.bias, 0.0, 0.3)
+        if type(module).__name__ == "BatchRenorm1d":  # and from batch renormalisation's initial statistics
+            nn.init.normal_(module.scale, 1.0, 0.3)
+            nn.init.normal_(module.bias, 0.0, 0.3)
+            module.ra_mean.normal_(0.0, 0.5)
+            module.ra_var.uniform_(0.5, 2.0)
+    if normalisation == "batch_renorm_training":
+        critic.set_bn_training_mode(True)
     observations, actions = th.randn((64, 5)), th.rand((64, 3)) * 2 - 1
     gradient = MinQActionGradient(critic, observations)
-    assert gradient.written_out == (activation_fn is not nn.ELU)
+    assert gradient.written_out == (activation_fn is not nn.ELU and normalisation != "batch_renorm_training")
 
     def min_q(a):
         return th.min(th.cat(critic(observations, a), dim=1), dim=1, keepdim=True).values

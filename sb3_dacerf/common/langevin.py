@@ -105,7 +105,9 @@ class MinQActionGradient:
     Built once per batch of states: the features, and each critic's first-layer contribution of the state, are
     computed once instead of at every Langevin step. For the critics SB3 builds (MLPs of ``Linear`` layers with
     ReLU, LeakyReLU or Tanh between them, optionally a ``LayerNorm`` after each hidden ``Linear`` as in
-    :class:`sb3_dacerf.common.policies.LayerNormCritic`) the gradient is written out (forward pass, then the chain
+    :class:`sb3_dacerf.common.policies.LayerNormCritic`, or a batch renormalisation in running-statistics mode
+    before each ``Linear`` as in :class:`sb3_dacerf.common.policies.BatchRenormCritic`, folded into that ``Linear``)
+    the gradient is written out (forward pass, then the chain
     rule through the same weights) without building an autograd graph: the same numbers as autograd, faster, and
     ``torch.compile`` can fuse it. Other critic networks fall back to autograd on the cached features.
     Per sample, the gradient is that of the critic with the smallest Q (as autograd routes it through ``min``).
@@ -118,7 +120,7 @@ class MinQActionGradient:
         with th.no_grad():
             self.features = critic.extract_features(observations, critic.features_extractor)
         self.q_networks = list(critic.q_networks)
-        layers = [_hidden_blocks(q_net) for q_net in self.q_networks]
+        layers = [_hidden_blocks(_fold_normalisation(q_net)) for q_net in self.q_networks]
         written_out = [layer for layer in layers if layer is not None]
         self.written_out = len(written_out) == len(layers)
         if self.written_out:
@@ -171,6 +173,43 @@ class MinQActionGradient:
     def _min_q(self, actions: th.Tensor) -> th.Tensor:
         inputs = th.cat([self.features, actions], dim=1)
         return th.min(th.cat([q_net(inputs) for q_net in self.q_networks], dim=1), dim=1, keepdim=True).values
+
+
+def _is_batch_renorm(module: nn.Module) -> bool:
+    """sb3-contrib's ``BatchRenorm1d`` (recognised by name: sb3-contrib is an optional dependency)."""
+    return type(module).__name__ == "BatchRenorm1d"
+
+
+def _fold_normalisation(network: nn.Module) -> nn.Module:
+    """
+    ``network`` with each batch renormalisation in running-statistics mode folded into the ``Linear`` after it (in
+    that mode it is the affine map ``scale · (x - mean) / sqrt(var + eps) + bias``): new layers, the same function.
+    ``network`` itself when it has none, or one in training mode, or one not followed by a ``Linear``.
+    """
+    if not isinstance(network, nn.Sequential) or not any(_is_batch_renorm(module) for module in network):
+        return network
+    modules = list(network)
+    folded: list[nn.Module] = []
+    index = 0
+    while index < len(modules):
+        module = modules[index]
+        if not _is_batch_renorm(module):
+            folded.append(module)
+            index += 1
+            continue
+        linear = modules[index + 1] if index + 1 < len(modules) else None
+        if module.training or not module.affine or not isinstance(linear, nn.Linear):
+            return network
+        with th.no_grad():
+            scale, bias, mean, var, eps = (getattr(module, name) for name in ("scale", "bias", "ra_mean", "ra_var", "eps"))
+            gain = scale / (var + eps).sqrt()
+            shift = bias - gain * mean
+            merged = nn.Linear(linear.in_features, linear.out_features, device=linear.weight.device, dtype=linear.weight.dtype)
+            merged.weight.copy_(linear.weight * gain)
+            merged.bias.copy_(linear.weight @ shift + (linear.bias if linear.bias is not None else 0.0))
+        folded.append(merged)
+        index += 2
+    return nn.Sequential(*folded)
 
 
 def _hidden_blocks(network: nn.Module) -> tuple[list[tuple[nn.Linear, nn.LayerNorm | None, nn.Module]], nn.Linear] | None:
