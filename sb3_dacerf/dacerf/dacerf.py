@@ -108,7 +108,8 @@ class DACERF(TwinCriticAlgorithm):
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
         ``dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16))``; the critics have
-        ``LayerNorm`` after every hidden layer unless it holds ``critic_layer_norm=False`` (SB3's MLP critics)
+        ``LayerNorm`` after every hidden layer unless it holds ``critic_layer_norm=False`` (SB3's MLP critics) or
+        ``critic_batch_renorm=True`` (CrossQ's batch-renorm critics, without target networks: ``tau`` is then unused)
     :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
         debug messages
     :param seed: Seed for the pseudo random generators
