@@ -42,10 +42,12 @@ NET_ARCH = [256, 256]
 # name: (algorithm, extra policy_kwargs). Every model gets net_arch NET_ARCH; the rest are the algorithm's defaults:
 # DACER's Mish (as in its official code), ReLU for the others (SB3's default, which DACERF keeps).
 # "DACER (ReLU)" differs from "DACER" only by its activation: DACER against DACERF at equal activation.
-# "DACERF (MLP critics)" differs from "DACERF" only by its critics (SB3's MLP instead of LayerNorm, the earlier default).
+# "DACERF (MLP critics)" differs from "DACERF" only by its critics (SB3's MLP instead of LayerNorm, the earlier default),
+# "DACERF (CrossQ critics)" by its critics too (batch renormalisation, no target networks, one joint forward pass).
 CONFIGURATIONS: dict[str, tuple[type[BaseAlgorithm], dict[str, Any]]] = {
     "DACERF": (DACERF, {}),
     "DACERF (MLP critics)": (DACERF, dict(critic_layer_norm=False)),
+    "DACERF (CrossQ critics)": (DACERF, dict(critic_batch_renorm=True)),
     "DACER": (DACER, {}),
     "DACER (ReLU)": (DACER, dict(activation_fn=nn.ReLU)),
     "SAC": (SAC, {}),
