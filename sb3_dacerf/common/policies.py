@@ -352,11 +352,10 @@ class TwinCriticPolicy(BasePolicy):
         self.training = mode
 
 
-class LayerNormCritic(ContinuousCritic):
+class NormalisedCritic(ContinuousCritic, ABC):
     """
-    SB3's twin ``ContinuousCritic`` with ``LayerNorm`` after every hidden linear layer (before the activation),
-    as in the critics of BRO, SimBa and FlowRL: normalised features keep the Q-values and ``∇_a Q`` (which drives
-    the Langevin targets) on a stable scale. Same arguments as ``ContinuousCritic``.
+    SB3's twin ``ContinuousCritic`` whose Q-networks are rebuilt with normalisation layers that the subclass names
+    in :meth:`normalisation` (keyword arguments of SB3's ``create_mlp``). Same arguments as ``ContinuousCritic``.
     """
 
     def __init__(
@@ -371,6 +370,7 @@ class LayerNormCritic(ContinuousCritic):
         n_critics: int = 2,
         share_features_extractor: bool = True,
     ):
+        normalisation = self.normalisation()
         super().__init__(
             observation_space,
             action_space,
@@ -387,12 +387,37 @@ class LayerNormCritic(ContinuousCritic):
         # ModuleList's parameter names (q_networks.<i>.*) are in saved models, so it stays
         self.q_networks = nn.ModuleList()  # type: ignore[assignment]
         for idx in range(n_critics):
-            q_net = nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, post_linear_modules=[nn.LayerNorm]))
+            layers = create_mlp(
+                input_dim,
+                1,
+                net_arch,
+                activation_fn,
+                pre_linear_modules=normalisation.get("pre_linear_modules"),
+                post_linear_modules=normalisation.get("post_linear_modules"),
+            )
+            q_net = nn.Sequential(*layers)
             self.add_module(f"qf{idx}", q_net)
             self.q_networks.append(q_net)
 
+    @classmethod
+    @abstractmethod
+    def normalisation(cls) -> dict[str, list[type[nn.Module]]]:
+        """``pre_linear_modules`` and/or ``post_linear_modules`` of ``create_mlp`` for each Q-network."""
 
-class BatchRenormCritic(ContinuousCritic):
+
+class LayerNormCritic(NormalisedCritic):
+    """
+    SB3's twin ``ContinuousCritic`` with ``LayerNorm`` after every hidden linear layer (before the activation),
+    as in the critics of BRO, SimBa and FlowRL: normalised features keep the Q-values and ``∇_a Q`` (which drives
+    the Langevin targets) on a stable scale. Same arguments as ``ContinuousCritic``.
+    """
+
+    @classmethod
+    def normalisation(cls) -> dict[str, list[type[nn.Module]]]:
+        return dict(post_linear_modules=[nn.LayerNorm])
+
+
+class BatchRenormCritic(NormalisedCritic):
     """
     SB3's twin ``ContinuousCritic`` with CrossQ's batch renormalisation (sb3-contrib's ``BatchRenorm1d``, momentum
     0.01) before every linear layer. The layers normalise with the running statistics except while
@@ -400,42 +425,19 @@ class BatchRenormCritic(ContinuousCritic):
     joint forward pass over ``(s, a)`` and ``(s', a')``. Same arguments as ``ContinuousCritic``.
     """
 
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        net_arch: list[int],
-        features_extractor: BaseFeaturesExtractor,
-        features_dim: int,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        normalize_images: bool = True,
-        n_critics: int = 2,
-        share_features_extractor: bool = True,
-    ):
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.set_bn_training_mode(False)
+
+    @classmethod
+    def normalisation(cls) -> dict[str, list[type[nn.Module]]]:
         try:
             from sb3_contrib.common.torch_layers import BatchRenorm1d
         except ImportError as error:
             raise ImportError(
                 "critic_batch_renorm=True uses sb3-contrib's BatchRenorm1d: pip install 'sb3-contrib>=2.4'"
             ) from error
-        super().__init__(
-            observation_space,
-            action_space,
-            net_arch,
-            features_extractor,
-            features_dim,
-            activation_fn=activation_fn,
-            normalize_images=normalize_images,
-            n_critics=n_critics,
-            share_features_extractor=share_features_extractor,
-        )
-        input_dim = features_dim + get_action_dim(action_space)
-        self.q_networks = nn.ModuleList()  # type: ignore[assignment]
-        for idx in range(n_critics):
-            q_net = nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, pre_linear_modules=[BatchRenorm1d]))
-            self.add_module(f"qf{idx}", q_net)
-            self.q_networks.append(q_net)
-        self.set_bn_training_mode(False)
+        return dict(pre_linear_modules=[BatchRenorm1d])
 
     def set_training_mode(self, mode: bool) -> None:
         super().set_training_mode(mode)
