@@ -5,12 +5,13 @@ import torch as th
 
 from sb3_dacerf import DACER, DACERF
 from sb3_dacerf.common.policies import BatchRenormCritic
+from sb3_dacerf.common.utils import is_batch_renorm
 
 pytest.importorskip("sb3_contrib")
 
 
 def batch_renorm_layers(critic: th.nn.Module) -> list[th.nn.Module]:
-    return [module for module in critic.modules() if type(module).__name__ == "BatchRenorm1d"]
+    return [module for module in critic.modules() if is_batch_renorm(module)]
 
 
 @pytest.fixture(params=[DACERF, DACER])

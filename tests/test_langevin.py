@@ -8,7 +8,7 @@ from torch import nn
 
 from sb3_dacerf.common.langevin import MinQActionGradient, autograd_action_gradient, langevin_targets
 from sb3_dacerf.common.policies import BatchRenormCritic, LayerNormCritic
-from sb3_dacerf.common.utils import frozen
+from sb3_dacerf.common.utils import frozen, is_batch_renorm
 
 
 def quadratic_q(mean: th.Tensor):
@@ -143,7 +143,7 @@ def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics, n
         if isinstance(module, nn.LayerNorm):  # away from LayerNorm's initial γ = 1, β = 0
             nn.init.normal_(module.weight, 1.0, 0.3)
             nn.init.normal_(module.bias, 0.0, 0.3)
-        if type(module).__name__ == "BatchRenorm1d":  # and from batch renormalisation's initial statistics
+        if is_batch_renorm(module):  # and from batch renormalisation's initial statistics
             nn.init.normal_(module.scale, 1.0, 0.3)
             nn.init.normal_(module.bias, 0.0, 0.3)
             module.ra_mean.normal_(0.0, 0.5)

@@ -7,6 +7,9 @@ import torch as th
 from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
+from torch.nn.utils import skip_init
+
+from sb3_dacerf.common.utils import is_batch_renorm
 
 
 def langevin_targets(
@@ -175,25 +178,20 @@ class MinQActionGradient:
         return th.min(th.cat([q_net(inputs) for q_net in self.q_networks], dim=1), dim=1, keepdim=True).values
 
 
-def _is_batch_renorm(module: nn.Module) -> bool:
-    """sb3-contrib's ``BatchRenorm1d`` (recognised by name: sb3-contrib is an optional dependency)."""
-    return type(module).__name__ == "BatchRenorm1d"
-
-
 def _fold_normalisation(network: nn.Module) -> nn.Module:
     """
     ``network`` with each batch renormalisation in running-statistics mode folded into the ``Linear`` after it (in
     that mode it is the affine map ``scale · (x - mean) / sqrt(var + eps) + bias``): new layers, the same function.
     ``network`` itself when it has none, or one in training mode, or one not followed by a ``Linear``.
     """
-    if not isinstance(network, nn.Sequential) or not any(_is_batch_renorm(module) for module in network):
+    if not isinstance(network, nn.Sequential) or not any(is_batch_renorm(module) for module in network):
         return network
     modules = list(network)
     folded: list[nn.Module] = []
     index = 0
     while index < len(modules):
         module = modules[index]
-        if not _is_batch_renorm(module):
+        if not is_batch_renorm(module):
             folded.append(module)
             index += 1
             continue
@@ -204,9 +202,11 @@ def _fold_normalisation(network: nn.Module) -> nn.Module:
             scale, bias, mean, var, eps = (getattr(module, name) for name in ("scale", "bias", "ra_mean", "ra_var", "eps"))
             gain = scale / (var + eps).sqrt()
             shift = bias - gain * mean
-            merged = nn.Linear(linear.in_features, linear.out_features, device=linear.weight.device, dtype=linear.weight.dtype)
-            merged.weight.copy_(linear.weight * gain)
-            merged.bias.copy_(linear.weight @ shift + (linear.bias if linear.bias is not None else 0.0))
+            # This runs at every actor update: skip the random initialisation that the copies below overwrite
+            weight = linear.weight
+            merged = skip_init(nn.Linear, linear.in_features, linear.out_features, device=weight.device, dtype=weight.dtype)
+            merged.weight.copy_(weight * gain)
+            merged.bias.copy_(weight @ shift + (linear.bias if linear.bias is not None else 0.0))
         folded.append(merged)
         index += 2
     return nn.Sequential(*folded)

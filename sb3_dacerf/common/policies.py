@@ -17,6 +17,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_dacerf.common.optim import get_optimizer_class
+from sb3_dacerf.common.utils import is_batch_renorm
 
 
 class GenerativeActor(BasePolicy, ABC):
@@ -450,5 +451,5 @@ class BatchRenormCritic(NormalisedCritic):
             the running statistics (``False``)
         """
         for module in self.modules():
-            if type(module).__name__ == "BatchRenorm1d":
+            if is_batch_renorm(module):
                 module.train(mode)

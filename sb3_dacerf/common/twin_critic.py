@@ -165,10 +165,6 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         """The critic's own parameters (not those of a features extractor shared with the actor), to freeze."""
         return self.critic.optimizer.param_groups[0]["params"]
 
-    def _bootstraps_from_critic(self) -> bool:
-        """CrossQ's critics (``critic_batch_renorm``): targets from the critics themselves, no target networks."""
-        return bool(getattr(self.policy, "critic_batch_renorm", False))
-
     def _update_critic(self, replay_data: ReplayBufferSamples) -> float:
         """
         One gradient step on ``J_Q = E[(r + γ (1 - done) min_j Q̄_j(s', a') - Q_i(s, a))²]`` with ``a' ~ π(·|s')``.
@@ -179,19 +175,19 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         with th.no_grad():
             next_actions = self.actor(replay_data.next_observations)
-        if self._bootstraps_from_critic():
-            # CrossQ: no target networks; one forward pass over (s, a) and (s', a') so that the batch statistics are
-            # those of both, in training mode for this pass only
-            assert isinstance(self.critic, BatchRenormCritic)
-            self.critic.set_bn_training_mode(True)
+        critic = self.critic
+        if isinstance(critic, BatchRenormCritic):
+            # CrossQ's critics (critic_batch_renorm): no target networks; one forward pass over (s, a) and (s', a') so
+            # that the batch statistics are those of both, in training mode for this pass only
+            critic.set_bn_training_mode(True)
             all_q_values = th.cat(
-                self.critic(
+                critic(
                     _cat_observations(replay_data.observations, replay_data.next_observations),
                     th.cat([replay_data.actions, next_actions], dim=0),
                 ),
                 dim=1,
             )
-            self.critic.set_bn_training_mode(False)
+            critic.set_bn_training_mode(False)
             current, next_q_values = th.split(all_q_values, replay_data.actions.shape[0], dim=0)
             current_q_values: tuple[th.Tensor, ...] = tuple(current.T[..., None])
             next_q_values = next_q_values.detach()
@@ -214,7 +210,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
 
     def _update_targets(self) -> None:
         """Polyak update of the target critics: ``Q̄ <- (1 - τ) Q̄ + τ Q`` (none with CrossQ's critics)."""
-        if self._bootstraps_from_critic():
+        if isinstance(self.critic, BatchRenormCritic):  # CrossQ's critics have no target networks
             return
         polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
         # Copy running stats, see GH issue #996

@@ -109,3 +109,8 @@ def non_finite_entries(observation: Any, name: str = "obs", limit: int = 5) -> s
         return None
     more = f" and {count - len(listed)} more" if count > len(listed) else ""
     return ", ".join(listed) + more
+
+
+def is_batch_renorm(module: th.nn.Module) -> bool:
+    """Whether ``module`` is sb3-contrib's ``BatchRenorm1d`` (recognised by name: sb3-contrib is an optional dependency)."""
+    return type(module).__name__ == "BatchRenorm1d"
