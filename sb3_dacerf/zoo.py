@@ -55,6 +55,15 @@ NET_ARCH = {
     "verybig": [512, 512, 512],
 }
 
+#: The critics :func:`sample_dacerf_params` draws from, as ``policy_kwargs``: SB3's MLP, LayerNorm after every hidden
+#: layer (the default), or CrossQ's batch renormalisation without target networks (needs sb3-contrib, which RL Zoo
+#: installs)
+CRITICS = {
+    "mlp": {"critic_layer_norm": False},
+    "layer_norm": {"critic_layer_norm": True},
+    "batch_renorm": {"critic_layer_norm": False, "critic_batch_renorm": True},
+}
+
 
 def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """
@@ -65,7 +74,12 @@ def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[st
     :return: keyword arguments for ``DACERF``
     """
     hyperparams = convert_dacer_params(sampled_params, policy_kwargs)  # the settings both samplers draw
-    if "critic_layer_norm" in hyperparams:
+    if "critics" in hyperparams:
+        critics = hyperparams.pop("critics")
+        if critics not in CRITICS:
+            raise ValueError(f"Unknown critics {critics!r} in the sampled parameters: use one of {sorted(CRITICS)}")
+        hyperparams["policy_kwargs"].update(CRITICS[critics])
+    if "critic_layer_norm" in hyperparams:  # studies made before batch-renorm critics were sampled
         hyperparams["policy_kwargs"]["critic_layer_norm"] = hyperparams.pop("critic_layer_norm")
     if hyperparams.get("ent_coef") == "off":  # Optuna's categorical values: "auto" (learned α) or "off" (paper)
         hyperparams["ent_coef"] = 0.0
@@ -113,10 +127,10 @@ def sample_dacerf_params(
         "n_sampling_steps": trial.suggest_categorical("n_sampling_steps", [1, 2, 4, 8]),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCH)),
         # The entropy regulator (learned α, or the paper's mechanism without added noise), the actor-loss
-        # weighting, LayerNorm critics and the normalised Langevin gradient: the options benchmarks/learning.md measures
+        # weighting, the critics (CRITICS) and the normalised Langevin gradient: the options benchmarks/learning.md measures
         "ent_coef": trial.suggest_categorical("ent_coef", ["auto", "off"]),
         "flow_matching_weights": trial.suggest_categorical("flow_matching_weights", ["gain", "q_scale", "td3bc", "flowrl"]),
-        "critic_layer_norm": trial.suggest_categorical("critic_layer_norm", [False, True]),
+        "critics": trial.suggest_categorical("critics", list(CRITICS)),
         "langevin_normalize_gradient": trial.suggest_categorical("langevin_normalize_gradient", [False, True]),
         # one-step targets (the default, as in the paper) or n-step returns
         "n_steps": trial.suggest_categorical("n_steps", [1, 3, 5]),

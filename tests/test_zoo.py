@@ -22,6 +22,7 @@ import rl_zoo3.hyperparams_opt  # noqa: E402
 import rl_zoo3.utils  # noqa: E402
 
 from sb3_dacerf import DACER, DACERF  # noqa: E402
+from sb3_dacerf.common.policies import BatchRenormCritic  # noqa: E402
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS  # noqa: E402
 from sb3_dacerf.envs.dmc import DMC_ENV_IDS  # noqa: E402
 from sb3_dacerf.zoo import (  # noqa: E402
@@ -181,19 +182,29 @@ def test_sampler_builds_dacerf():
         # --trial-id reloads a study's parameters through the converter
         assert convert_dacerf_params(trial.params, {"optimizer_class": "RAD"}) == hyperparams
         model = DACERF("MlpPolicy", "Pendulum-v1", **hyperparams)
-        layer_norm = hyperparams["policy_kwargs"]["critic_layer_norm"]
-        assert any(isinstance(m, th.nn.LayerNorm) for m in model.critic.modules()) == layer_norm
+        critics = trial.params["critics"]
+        assert hyperparams["policy_kwargs"]["critic_layer_norm"] == (critics == "layer_norm")
+        assert any(isinstance(m, th.nn.LayerNorm) for m in model.critic.modules()) == (critics == "layer_norm")
+        assert isinstance(model.critic, BatchRenormCritic) == (critics == "batch_renorm")
         assert model.ent_coef == hyperparams["ent_coef"] and hyperparams["ent_coef"] in ("auto", 0.0)
         assert model.langevin_normalize_gradient == hyperparams["langevin_normalize_gradient"]
         assert model.n_steps == hyperparams["n_steps"] in (1, 3, 5)
-        seen |= {("ent_coef", hyperparams["ent_coef"]), ("layer_norm", layer_norm)}
+        seen |= {("ent_coef", hyperparams["ent_coef"]), ("critics", critics)}
         seen.add(("normalize_gradient", hyperparams["langevin_normalize_gradient"]))
         study.tell(trial, 0.0)
     # both values of each switch were drawn: the sampler explores the options benchmarks/learning.md measures
     assert seen == {
-        *[("ent_coef", "auto"), ("ent_coef", 0.0), ("layer_norm", False), ("layer_norm", True)],
+        *[("ent_coef", "auto"), ("ent_coef", 0.0), ("critics", "mlp"), ("critics", "layer_norm"), ("critics", "batch_renorm")],
         *[("normalize_gradient", False), ("normalize_gradient", True)],
     }
+
+
+def test_convert_dacerf_params_reads_earlier_studies_and_refuses_unknown_critics():
+    drawn = {"batch_size_pow": 8, "net_arch": "small"}
+    # studies made before the batch-renorm critics were sampled drew critic_layer_norm itself
+    assert convert_dacerf_params({**drawn, "critic_layer_norm": False})["policy_kwargs"]["critic_layer_norm"] is False
+    with pytest.raises(ValueError, match=r"Unknown critics 'crossq'.*'batch_renorm', 'layer_norm', 'mlp'"):
+        convert_dacerf_params({**drawn, "critics": "crossq"})
 
 
 def test_train_enjoy_record_video_continue(tmp_path):
@@ -296,7 +307,7 @@ def test_optimize_two_workers_share_one_study(tmp_path):
         "net_arch",
         "ent_coef",
         "flow_matching_weights",
-        "critic_layer_norm",
+        "critics",
         "langevin_normalize_gradient",
         "n_steps",
     }
