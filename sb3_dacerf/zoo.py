@@ -57,10 +57,10 @@ NET_ARCH = {
 
 #: The critics :func:`sample_dacerf_params` draws from, as ``policy_kwargs``: SB3's MLP, LayerNorm after every hidden
 #: layer (the default), or CrossQ's batch renormalisation without target networks (needs sb3-contrib, which RL Zoo
-#: installs)
+#: installs). Each sets both switches, so that the draw overrides a YAML entry's own choice of critics.
 CRITICS = {
-    "mlp": {"critic_layer_norm": False},
-    "layer_norm": {"critic_layer_norm": True},
+    "mlp": {"critic_layer_norm": False, "critic_batch_renorm": False},
+    "layer_norm": {"critic_layer_norm": True, "critic_batch_renorm": False},
     "batch_renorm": {"critic_layer_norm": False, "critic_batch_renorm": True},
 }
 

@@ -199,10 +199,17 @@ def test_sampler_builds_dacerf():
     }
 
 
-def test_convert_dacerf_params_reads_earlier_studies_and_refuses_unknown_critics():
+def test_convert_dacerf_params_critics_override_yaml_read_earlier_studies_refuse_unknown():
     drawn = {"batch_size_pow": 8, "net_arch": "small"}
     # studies made before the batch-renorm critics were sampled drew critic_layer_norm itself
     assert convert_dacerf_params({**drawn, "critic_layer_norm": False})["policy_kwargs"]["critic_layer_norm"] is False
+    # the draw overrides the critics a YAML entry chose
+    yaml_kwargs = {"critic_batch_renorm": True}
+    assert convert_dacerf_params({**drawn, "critics": "layer_norm"}, yaml_kwargs)["policy_kwargs"] == {
+        "net_arch": [64, 64],
+        "critic_layer_norm": True,
+        "critic_batch_renorm": False,
+    }
     with pytest.raises(ValueError, match=r"Unknown critics 'crossq'.*'batch_renorm', 'layer_norm', 'mlp'"):
         convert_dacerf_params({**drawn, "critics": "crossq"})
 
