@@ -42,7 +42,7 @@ def test_critics_learn_without_targets_and_update_statistics_once_per_critic_upd
         assert not layer.training
 
 
-@pytest.mark.parametrize("model_class", [DACERF])
+@pytest.mark.parametrize("model_class", [DACERF])  # the fast settings follow model_class: DACERF's
 def test_saved_and_loaded_with_their_running_statistics(tmp_path, fast):
     fast["policy_kwargs"]["critic_batch_renorm"] = True
     model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, **fast)

@@ -180,14 +180,16 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
             # CrossQ's critics (critic_batch_renorm): no target networks; one forward pass over (s, a) and (s', a') so
             # that the batch statistics are those of both, in training mode for this pass only
             critic.set_bn_training_mode(True)
-            all_q_values = th.cat(
-                critic(
-                    _cat_observations(replay_data.observations, replay_data.next_observations),
-                    th.cat([replay_data.actions, next_actions], dim=0),
-                ),
-                dim=1,
-            )
-            critic.set_bn_training_mode(False)
+            try:
+                all_q_values = th.cat(
+                    critic(
+                        _cat_observations(replay_data.observations, replay_data.next_observations),
+                        th.cat([replay_data.actions, next_actions], dim=0),
+                    ),
+                    dim=1,
+                )
+            finally:  # back to the running statistics even if the pass fails, so no later pass updates them
+                critic.set_bn_training_mode(False)
             current, next_q_values = th.split(all_q_values, replay_data.actions.shape[0], dim=0)
             current_q_values: tuple[th.Tensor, ...] = tuple(current.T[..., None])
             next_q_values = next_q_values.detach()
