@@ -73,6 +73,9 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-delay1": ("DACERF", dict(policy_delay=1)),
     "dacerf-gradnorm": ("DACERF", dict(langevin_normalize_gradient=True)),
     "dacerf-steps3": ("DACERF", dict(n_sampling_steps=3)),
+    # fewer, larger Langevin steps with the same total drift and noise (N_l * eta = 0.6, N_l * eta * alpha fixed)
+    "dacerf-langevin5": ("DACERF", dict(langevin_steps=5, langevin_step_size=0.12)),
+    "dacerf-langevin10": ("DACERF", dict(langevin_steps=10, langevin_step_size=0.06)),
     "dacerf-nstep3": ("DACERF", dict(n_steps=3)),  # 3-step returns in the critic targets (SB3's NStepReplayBuffer)
     "dacerf-utd2": ("DACERF", dict(gradient_steps=2)),  # two gradient steps per environment step (twice the updates)
     "dacerf-tau001": ("DACERF", dict(tau=0.001)),
