@@ -9,7 +9,7 @@ DOCS_OUT ?= docs/_build/html
 check: lint types test docs
 
 test:
-	$(PYTHON) -m pytest
+	$(PYTHON) -m pytest --durations=15
 
 # Quiet on success (-q: warnings and errors only), so that the tests' summary stays the last line of `make check`
 docs:

@@ -61,6 +61,7 @@ def test_tasks_are_dm_control_suite_without_lqr():
         assert gym.spec(env_id).max_episode_steps == 1000
 
 
+@pytest.mark.slow  # a subprocess
 def test_registering_imports_no_simulator():
     code = "import sys, gymnasium, sb3_dacerf; print('DMC-dog-run-v0' in gymnasium.registry, 'dm_control' in sys.modules)"
     result = _python(code)
@@ -69,7 +70,11 @@ def test_registering_imports_no_simulator():
 
 
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # dm_control frees a failed GL context noisily
-@pytest.mark.parametrize("env_id", DMC_ENV_IDS)
+# every id but one is slow (49 tasks): the fast run checks one
+@pytest.mark.parametrize(
+    "env_id",
+    [env_id if env_id == "DMC-cartpole-swingup-v0" else pytest.param(env_id, marks=pytest.mark.slow) for env_id in DMC_ENV_IDS],
+)
 def test_check_env(env_id):
     if env_id == "DMC-quadruped-escape-v0" and not _gl_available():
         pytest.skip("quadruped-escape needs a MuJoCo OpenGL backend at reset (set MUJOCO_GL=egl or osmesa)")
@@ -127,6 +132,7 @@ def test_actions_are_rescaled_to_the_actuator_range():
     np.testing.assert_allclose(physics.data.ctrl, low)
 
 
+@pytest.mark.slow  # a subprocess
 def test_rgb_array_rendering():
     code = (
         "import gymnasium, sb3_dacerf; env = gymnasium.make('DMC-cartpole-swingup-v0', render_mode='rgb_array'); "
@@ -139,6 +145,7 @@ def test_rgb_array_rendering():
     assert result.stdout.strip() == "(240, 320, 3) uint8"
 
 
+@pytest.mark.slow  # a subprocess
 def test_no_gl_backend_error_names_mujoco_gl():
     code = (
         "import gymnasium, sb3_dacerf; env = gymnasium.make('DMC-cartpole-swingup-v0', render_mode='rgb_array'); "

@@ -54,6 +54,7 @@ def add_vehicle(unwrapped, lane_index, longitudinal: float, speed: float = 20.0)
     return vehicle
 
 
+@pytest.mark.slow  # a subprocess
 def test_registration_imports_no_simulator():
     code = (
         "import sys, gymnasium as gym, sb3_dacerf; assert 'highway_env' not in sys.modules; "
@@ -759,6 +760,7 @@ def test_scene_is_perceived_once_per_step_and_observe_has_no_side_effect(monkeyp
     assert unwrapped._reward(None) == pytest.approx(reward)
 
 
+@pytest.mark.slow  # a subprocess
 @pytest.mark.parametrize("video_driver", [None, "dummy"])
 def test_import_leaves_the_process_environment_unchanged(video_driver):
     # Headless: no display and no SDL_VIDEODRIVER, or SDL's "dummy" driver; offscreen frames are drawn in both cases.
@@ -788,6 +790,7 @@ def test_rgb_array_rendering(env_id):
     env.close()
 
 
+@pytest.mark.slow  # subprocess workers
 def test_subprocess_workers_register_the_ids():
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv

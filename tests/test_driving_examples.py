@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("highway_env")
+pytestmark = pytest.mark.slow  # the example scripts, run end to end
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXAMPLES = os.path.join(ROOT, "examples")

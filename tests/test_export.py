@@ -166,6 +166,7 @@ def test_vec_normalize_statistics_are_baked_in(tmp_path, format, policy, algorit
     assert np.abs(run_exported(path, format, obs) - expected).max() <= 1e-5
 
 
+@pytest.mark.slow  # a subprocess
 def test_command_line(tmp_path, monkeypatch, capsys):
     model = make_model("MlpPolicy")
     model.save(tmp_path / "model.zip")

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # the benchmark script, run end to end on short budgets
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 

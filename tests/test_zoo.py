@@ -84,6 +84,7 @@ def zoo(script: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
     return result
 
 
+@pytest.mark.slow  # RL Zoo in a subprocess
 def test_start_up_hook_is_installed():
     if not HOOK_INSTALLED:
         message = "the RL Zoo start-up hook is not installed (`pip install .`): Zoo tests use `python -m sb3_dacerf.zoo`"
@@ -214,6 +215,7 @@ def test_convert_dacerf_params_critics_override_yaml_read_earlier_studies_refuse
         convert_dacerf_params({**drawn, "critics": "crossq"})
 
 
+@pytest.mark.slow  # RL Zoo in a subprocess
 def test_train_enjoy_record_video_continue(tmp_path):
     # --eval-freq, --save-freq, -P, tensorboard and callbacks go through RL Zoo's ExperimentManager
     train = zoo(
@@ -250,6 +252,7 @@ def test_train_enjoy_record_video_continue(tmp_path):
     assert (tmp_path / "logs" / "dacerf" / "Pendulum-v1_2" / "Pendulum-v1.zip").is_file()
 
 
+@pytest.mark.slow  # RL Zoo in a subprocess
 def test_dacer_train_and_enjoy(tmp_path):
     train = zoo(
         "train",
@@ -268,6 +271,7 @@ def test_dacer_train_and_enjoy(tmp_path):
     assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
 
 
+@pytest.mark.slow  # RL Zoo in a subprocess
 def test_sac_on_dmc_reads_package_yaml(tmp_path):
     train = zoo(
         "train",
@@ -279,6 +283,7 @@ def test_sac_on_dmc_reads_package_yaml(tmp_path):
     assert (tmp_path / "logs" / "sac" / "DMC-cartpole-swingup-v0_1" / "DMC-cartpole-swingup-v0.zip").is_file()
 
 
+@pytest.mark.slow  # RL Zoo in a subprocess
 def test_optimize_two_workers_share_one_study(tmp_path):
     storage = tmp_path / "study.log"
     command, env = zoo_command(
@@ -337,6 +342,7 @@ gym.register("NanRewardPendulum-v0", entry_point=NanRewardPendulum)
 """
 
 
+@pytest.mark.slow  # RL Zoo in a subprocess
 def test_optimize_prunes_a_trial_whose_loss_is_not_finite_and_goes_on(tmp_path):
     # RL Zoo prunes trials that raise ValueError or AssertionError; any other error stops the whole study
     (tmp_path / "nan_env.py").write_text(NAN_ENV_MODULE)

@@ -1,45 +1,23 @@
 """
-Export a DACER-F or DACER policy to ONNX or TorchScript for deployment without Python, SB3 or this package.
-
-The exported graph takes the raw observation (SB3's preprocessing inside: image scaling, one-hot encoding,
-Dict features extraction, and optionally VecNormalize's observation normalisation) and returns the action
-in the environment's units, as ``model.predict`` does. The generator's noise is an optional second input: left out,
-it is 0 (``deterministic=True``); given standard normal noise, the policy samples stochastically (without the
-exploration noise of rollouts). DACER-F's noise ``a0`` is the flow's starting point, ``(batch, action_dim)``; DACER's
-``noise``, ``(batch, n_diffusion_steps, action_dim)``, holds the start and the posterior noise of each reverse step
-(:class:`sb3_dacerf.dacer.policies.DiffusionActor`). Either may have a batch of 1, shared by all the observations.
-
-    python -m sb3_dacerf.export MODEL.zip --format onnx --out policy.onnx
-    python -m sb3_dacerf.export MODEL.zip --format torchscript --vec-normalize vecnormalize.pkl
+The deployment graphs of the package's actors: :class:`ExportablePolicy` (raw observation in, action in the
+environment's units out, VecNormalize's observation normalisation optionally inside) and its subclasses for DACER-F's
+flow and DACER's diffusion actor; :func:`check_vec_normalize` checks statistics before they are baked in.
 """
 
-import argparse
 import copy
-import pickle
-import warnings
 from abc import ABC, abstractmethod
-from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
 from sb3_dacerf.common.policies import GenerativeActor
-from sb3_dacerf.common.twin_critic import saved_policy_class
-from sb3_dacerf.common.utils import atomic_path
-from sb3_dacerf.dacer.dacer import DACER
-from sb3_dacerf.dacer.policies import DACERPolicy, DiffusionActor
-from sb3_dacerf.dacerf.dacerf import DACERF
+from sb3_dacerf.dacer.policies import DiffusionActor
 from sb3_dacerf.dacerf.policies import FlowActor
-
-EXPORT_FORMATS = ("onnx", "torchscript")
-# Observation spaces that SB3's ``preprocess_obs`` handles with traceable tensor operations
-SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
 
 
 class ExportablePolicy(nn.Module, ABC):
@@ -265,56 +243,6 @@ def exportable_policy(
     )
 
 
-class _ScriptedPolicy(nn.Module):
-    """TorchScript entry point with ``a0`` optional: the graph traced without it (a0 = 0) or the one traced with it."""
-
-    def __init__(self, deterministic: th.jit.ScriptModule, stochastic: th.jit.ScriptModule):
-        super().__init__()
-        self.deterministic = deterministic
-        self.stochastic = stochastic
-
-    def forward(self, obs: th.Tensor, a0: th.Tensor | None = None) -> th.Tensor:
-        if a0 is None:
-            return self.deterministic(obs)
-        return self.stochastic(obs, a0)
-
-
-class _ScriptedDictPolicy(_ScriptedPolicy):
-    """:class:`_ScriptedPolicy` for Dict observation spaces."""
-
-    def forward(self, obs: dict[str, th.Tensor], a0: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
-        if a0 is None:
-            return self.deterministic(obs)
-        return self.stochastic(obs, a0)
-
-
-class _ScriptedDiffusionPolicy(_ScriptedPolicy):
-    """:class:`_ScriptedPolicy` of a DACER policy, whose optional second input is ``noise``."""
-
-    def forward(self, obs: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
-        if noise is None:
-            return self.deterministic(obs)
-        return self.stochastic(obs, noise)
-
-
-class _ScriptedDiffusionDictPolicy(_ScriptedPolicy):
-    """:class:`_ScriptedDiffusionPolicy` for Dict observation spaces."""
-
-    def forward(self, obs: dict[str, th.Tensor], noise: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
-        if noise is None:
-            return self.deterministic(obs)
-        return self.stochastic(obs, noise)
-
-
-#: The TorchScript entry point of each graph: (Dict observations?, noise input name) -> class
-_SCRIPTED_POLICIES = {
-    (False, "a0"): _ScriptedPolicy,
-    (True, "a0"): _ScriptedDictPolicy,
-    (False, "noise"): _ScriptedDiffusionPolicy,
-    (True, "noise"): _ScriptedDiffusionDictPolicy,
-}
-
-
 def _mean_shape(obs_rms: object) -> tuple[int, ...]:
     """Shape of the mean of VecNormalize statistics, ``()`` when they have none."""
     mean = getattr(obs_rms, "mean", None)
@@ -369,160 +297,3 @@ def check_vec_normalize(vec_normalize: object, observation_space: spaces.Space) 
             f"The VecNormalize statistics normalise observations of shape {_mean_shape(obs_rms)} "
             f"but the model's observations have shape {observation_space.shape}. {advice}"
         )
-
-
-def export_policy(
-    model: BaseAlgorithm,
-    path: str | Path,
-    format: str = "onnx",
-    n_sampling_steps: int | None = None,
-    vec_normalize: VecNormalize | None = None,
-    opset_version: int = 17,
-) -> Path:
-    """
-    Export the policy of a DACER-F or DACER model as a graph from raw observation to action in the environment's units.
-
-    ONNX: inputs ``obs`` (or one input per key of a Dict observation space, named by the key) and the noise (DACERF:
-    ``a0``, ``(batch, action_dim)``; DACER: ``noise``, ``(batch, n_diffusion_steps, action_dim)``), output ``action``,
-    batch dimension dynamic. The noise defaults to zeros (an initializer that onnxruntime lets you override:
-    ``session.run(None, {"obs": obs})`` is deterministic, ``{"obs": obs, "a0": a0}`` is not); a noise with a batch of 1
-    is shared by all the observations. TorchScript: ``policy(obs)`` or ``policy(obs, noise)``, with ``obs`` a tensor
-    or a dict of tensors. Observations have the model's observation space layout (channel-first images, as after
-    ``VecTransposeImage``) and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch dimension.
-
-    :param model: A DACERF or DACER model (trained or not)
-    :param path: File to write (``.onnx`` or ``.pt`` by convention); its folder must exist. The file is written
-        whole or not at all: it replaces an existing one only once complete
-    :param format: ``"onnx"`` or ``"torchscript"``
-    :param n_sampling_steps: DACERF: number of Euler steps, fixed in the graph (the model's ``n_sampling_steps`` by
-        default). DACER: leave it out; its ``n_diffusion_steps`` reverse steps are fixed by its noise schedule
-    :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``VecNormalize.load``), if any:
-        its observation normalisation is then applied inside the graph, so the graph takes raw observations; statistics
-        of another observation layout are refused (:func:`check_vec_normalize`)
-    :param opset_version: ONNX opset
-    :return: The path written
-    """
-    if format not in EXPORT_FORMATS:
-        raise ValueError(f"Unknown export format {format!r}: choose one of {EXPORT_FORMATS}")
-    actor = getattr(model, "actor", None)
-    if not isinstance(actor, (FlowActor, DiffusionActor)):
-        raise TypeError(
-            f"export_policy exports DACERF and DACER models (whose actor is a FlowActor or a DiffusionActor), "
-            f"got a {type(model).__name__} model whose actor is a {type(actor).__name__}. "
-            "For SB3's own algorithms see https://stable-baselines3.readthedocs.io/en/master/guide/export.html"
-        )
-    observation_space = model.observation_space
-    subspaces = observation_space.spaces.values() if isinstance(observation_space, spaces.Dict) else [observation_space]
-    if not all(isinstance(subspace, SUPPORTED_OBSERVATION_SPACES) for subspace in subspaces):
-        raise TypeError(
-            f"Cannot export a policy for the observation space {observation_space}: supported are Box, Discrete, "
-            "MultiDiscrete and MultiBinary observations, and Dict spaces of them."
-        )
-    if vec_normalize is not None:
-        check_vec_normalize(vec_normalize, observation_space)
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise FileNotFoundError(f"Cannot write {path}: the folder {path.parent} does not exist")
-
-    module = exportable_policy(actor, n_sampling_steps, vec_normalize)
-    obs = model.policy.obs_to_tensor(observation_space.sample())[0]
-    obs = {key: value.cpu() for key, value in obs.items()} if isinstance(obs, dict) else obs.cpu()
-    noise = th.zeros(module.default_noise_shape)
-    if format == "torchscript":
-        scripted_class = _SCRIPTED_POLICIES[module.obs_keys is not None, module.noise_name]
-        scripted = th.jit.script(scripted_class(th.jit.trace(module, (obs,)), th.jit.trace(module, (obs, noise))))
-        # Written whole or not at all: a failed write leaves a previous file at `path` as it was
-        with atomic_path(path) as temporary:
-            th.jit.save(scripted, str(temporary))
-        return path
-
-    import onnx  # the optional "export" extra: imported only here, so that TorchScript export does not need it
-
-    obs_names = ["obs"] if module.obs_keys is None else module.obs_keys
-    # The noise's batch is its own dimension: 1 (one noise for the whole batch, as the default) or the observations'
-    noise_name = module.noise_name
-    dynamic_axes = {**{name: {0: "batch"} for name in [*obs_names, "action"]}, noise_name: {0: f"{noise_name}_batch"}}
-    # Written whole or not at all: a failed write leaves a previous file at `path` as it was
-    with atomic_path(path) as temporary:
-        with warnings.catch_warnings():
-            # torch>=2.9 deprecates the TorchScript-based exporter; the torch.export one needs onnxscript, not a dependency
-            warnings.simplefilter("ignore", DeprecationWarning)
-            th.onnx.export(
-                module,
-                (obs, noise),
-                str(temporary),
-                dynamo=False,
-                input_names=[*obs_names, noise_name],
-                output_names=["action"],
-                dynamic_axes=dynamic_axes,
-                opset_version=opset_version,
-            )
-        graph = onnx.load(str(temporary))
-        # An initializer with an input's name is that input's default value: zeros, deterministic unless overridden
-        graph.graph.initializer.append(onnx.numpy_helper.from_array(noise.numpy(), noise_name))
-        onnx.checker.check_model(graph)
-        onnx.save(graph, str(temporary))
-    return path
-
-
-def load_model(path: Path) -> DACERF | DACER:
-    """
-    Load a DACERF or DACER model on the CPU, the algorithm read from the file.
-
-    :raises ValueError: if the file holds another algorithm's model, naming it
-    """
-    policy_class = saved_policy_class(path)
-    algorithm = DACER if isinstance(policy_class, type) and issubclass(policy_class, DACERPolicy) else DACERF
-    return algorithm.load(path, device="cpu")
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(
-        prog="python -m sb3_dacerf.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("model", type=Path, help="DACERF or DACER model saved with model.save() (.zip)")
-    parser.add_argument("--format", choices=EXPORT_FORMATS, default="onnx")
-    parser.add_argument("--out", type=Path, help="output file (default: the model's name with .onnx or .pt)")
-    parser.add_argument(
-        "--n-sampling-steps", type=int, help="DACERF: Euler steps fixed in the graph (default: the model's); not for DACER"
-    )
-    parser.add_argument("--vec-normalize", type=Path, help="VecNormalize statistics (.pkl) to bake into the graph")
-    parser.add_argument("--opset", type=int, default=17, help="ONNX opset version")
-    args = parser.parse_args()
-
-    if not args.model.is_file():
-        parser.error(f"no model file at {args.model}")
-    try:
-        model = load_model(args.model)
-    except Exception as error:
-        parser.error(
-            f"could not load {args.model} as a DACERF or DACER model (was it saved by another algorithm?): "
-            f"{type(error).__name__}: {error}"
-        )
-    vec_normalize = None
-    if args.vec_normalize is not None:
-        if not args.vec_normalize.is_file():
-            parser.error(f"no VecNormalize statistics file at {args.vec_normalize}")
-        # What VecNormalize.load does, without an environment to wrap: only the statistics are needed
-        try:
-            with open(args.vec_normalize, "rb") as file:
-                vec_normalize = pickle.load(file)
-        except Exception as error:
-            parser.error(
-                f"could not read {args.vec_normalize} as VecNormalize statistics (a file written by VecNormalize.save): "
-                f"{type(error).__name__}: {error}"
-            )
-    out = args.out or args.model.with_suffix(".onnx" if args.format == "onnx" else ".pt")
-    try:
-        export_policy(model, out, args.format, args.n_sampling_steps, vec_normalize, args.opset)
-    except (TypeError, ValueError, FileNotFoundError) as error:
-        parser.error(str(error))
-    if isinstance(model.actor, DiffusionActor):
-        steps = f"{model.actor.n_diffusion_steps} diffusion step(s)"
-    else:
-        steps = f"{model.actor.n_sampling_steps if args.n_sampling_steps is None else args.n_sampling_steps} Euler step(s)"
-    print(f"Exported {args.model} ({args.format}, {steps}) to {out}")
-
-
-if __name__ == "__main__":
-    main()
