@@ -1,17 +1,22 @@
 """
-Faster drop-in versions of highway-env's road objects, which give the simulation the same answers.
+Faster drop-in versions of highway-env's road, lane network and IDM vehicle, which give the simulation the same
+answers.
 
-The driving scenarios spend most of their time in three parts of highway-env's traffic simulation:
+The driving scenarios spend most of their time in four parts of highway-env's traffic simulation:
 
 - ``RoadNetwork.get_closest_lane_index``, called after every move of every vehicle, measures the distance from the
-  vehicle to every lane of the network (20 lanes at the intersection). :class:`IndexedRoadNetwork` first bounds each
-  lane's distance from below by the distance to the lane's bounding box and by the heading difference, and measures
-  only the lanes whose bound does not exceed the best distance found: the same lane, at a fraction of the cost.
+  vehicle to every lane of the network (20 lanes at the intersection). :class:`IndexedRoadNetwork` bounds each
+  lane's distance from below (the distance to the lane's bounding box, from the vehicle's 2 m grid cell and then
+  from its position, and the heading difference) and measures the lanes nearest first, only while their bound does
+  not exceed the best distance found: the same lane, ties going to the first in the network's order as
+  ``np.argmin`` gives them. Its straight and arc lanes remember the local coordinates of recent positions (a
+  position is projected on the same lane by the closest-lane search, the lane controller and the IDM gaps).
 - ``Road.neighbour_vehicles`` (IDM and MOBIL: the vehicles ahead and behind on a lane) projects every vehicle on
-  the lane for every query, several queries per vehicle and step. :class:`FastRoad` projects each vehicle on each
-  lane once per ``Road.act()`` (positions do not change while vehicles decide) and scans the stored coordinates.
-  Its ``step()`` also skips the collision checks that highway-env returns from at once (pairs of vehicles neither
-  of which checks collisions, such as the multi-lane traffic).
+  the lane for every query, several queries per vehicle and step. :class:`FastRoad` collects the vehicles on each
+  lane once per ``Road.act()`` (positions do not change while vehicles decide), projecting only those whose lateral
+  offset, computed in a few float operations, does not already put them off the lane, and scans that list. Its
+  ``step()`` also skips the collision checks that highway-env returns from at once: pairs neither of which checks
+  collisions (the multi-lane traffic) and pairs farther apart than highway-env's own pre-check distance.
 - ``RegulatedRoad.enforce_road_rules`` (the intersection's right of way, twice a second) predicts both vehicles of
   every pair over 3 s, and a plain ``Vehicle`` (the ego) predicts itself by rolling out a ``copy.deepcopy`` of
   itself, which copies the whole road with every vehicle on it, and looks up its closest lane at each of the 11
@@ -19,10 +24,13 @@ The driving scenarios spend most of their time in three parts of highway-env's t
   while the rules are enforced), rolls the ego out detached from the road (the same kinematics: the closest lane of
   a predicted point does not move it), and rejects pairs whose predicted paths stay farther apart than the
   conflict check's pre-check distance before comparing them point by point.
+- ``IDMVehicle`` clips single numbers with ``np.clip`` (microseconds each, seven per decision):
+  :class:`FastIDMVehicle` takes the same decisions clipping Python numbers.
 
-Every answer is highway-env's own: the same lane, the same neighbours, the same conflicts, so the same traffic and
-the same episodes for the same seed (``tests/test_driving_envs.py`` checks each piece against highway-env's and
-whole episodes against the stock road). The scenarios use these classes unless ``fast_simulation`` is ``False``.
+Every answer is highway-env's own: the same lane, the same neighbours, the same conflicts and decisions, so the same
+traffic and the same episodes for the same seed (``tests/test_driving_simulation.py`` checks each piece against
+highway-env's and whole episodes against highway-env's classes). The scenarios use these classes unless their
+config sets ``fast_simulation`` to ``False``.
 """
 
 from __future__ import annotations
@@ -129,10 +137,16 @@ class IndexedRoadNetwork(RoadNetwork):
     """
     highway-env's ``RoadNetwork`` with a faster ``get_closest_lane_index`` that returns the same lane (see the
     module docstring): lanes whose lower bound exceeds the best distance measured so far are not measured, and ties
-    go to the first lane in the network's order, as ``np.argmin`` gives them.
+    go to the first lane in the network's order, as ``np.argmin`` gives them. Positions or headings that are not
+    finite go to highway-env's search.
     """
 
+    CELL = 2.0
+    """[m] side of the grid cells whose candidate lanes are remembered."""
+    MAX_CELLS = 65536
+    """The remembered cells are forgotten when there are this many."""
     _bounds: list[tuple[LaneIndex, AbstractLane, tuple[int, float, float, float, float, float, float]]] | None = None
+    _cells: dict[tuple[int, int], list[tuple[float, int]]]
 
     @classmethod
     def from_network(cls, network: RoadNetwork) -> IndexedRoadNetwork:
@@ -150,9 +164,11 @@ class IndexedRoadNetwork(RoadNetwork):
     def add_lane(self, _from: str, _to: str, lane: AbstractLane) -> None:
         super().add_lane(_from, _to, lane)
         self._bounds = None
+        self._cells = {}
 
     def _lane_bounds(self) -> list[tuple[LaneIndex, AbstractLane, tuple[int, float, float, float, float, float, float]]]:
         if self._bounds is None:
+            self._cells = {}
             self._bounds = [
                 ((_from, _to, _id), lane, _lane_bound(lane))
                 for _from, to_dict in self.graph.items()
@@ -169,31 +185,79 @@ class IndexedRoadNetwork(RoadNetwork):
         :param heading: a heading [rad], or ``None`` for the position alone
         :return: the index of the closest lane
         """
-        lanes = self._lane_bounds()
         x, y = float(position[0]), float(position[1])
         h = None if heading is None else float(heading)
-        lower = []
-        for _, _, (kind, x_min, y_min, x_max, y_max, lane_heading, half_width) in lanes:
-            if kind == _OTHER:
-                lower.append(-math.inf)
-                continue
-            dx = x_min - x if x < x_min else (x - x_max if x > x_max else 0.0)
-            dy = y_min - y if y < y_min else (y - y_max if y > y_max else 0.0)
-            bound = math.hypot(dx, dy)
-            if h is not None:
-                angle = abs((h - lane_heading + math.pi) % _TWO_PI - math.pi) - half_width
-                if angle > 0.0:
-                    bound = bound + angle if kind == _STRAIGHT else max(bound, angle)
-            lower.append(bound - _BOUND_TOLERANCE)
-        first = min(range(len(lanes)), key=lower.__getitem__)
-        best, best_i = lanes[first][1].distance_with_heading(position, heading), first
-        for i, bound in enumerate(lower):
-            if i == first or bound > best:
-                continue
-            distance = lanes[i][1].distance_with_heading(position, heading)
+        if not (math.isfinite(x) and math.isfinite(y) and (h is None or math.isfinite(h))):
+            return super().get_closest_lane_index(position, heading)
+        lanes = self._lane_bounds()
+        cell = (math.floor(x / self.CELL), math.floor(y / self.CELL))
+        candidates = self._cells.get(cell)
+        if candidates is None:
+            candidates = self._cell_candidates(cell)
+        best, best_i = math.inf, -1
+        for cell_bound, i in candidates:
+            if cell_bound > best:
+                break  # this lane and the next ones are farther than the best lane, wherever in the cell
+            _, lane, (kind, x_min, y_min, x_max, y_max, lane_heading, half_width) = lanes[i]
+            if kind != _OTHER:
+                dx = x_min - x if x < x_min else (x - x_max if x > x_max else 0.0)
+                dy = y_min - y if y < y_min else (y - y_max if y > y_max else 0.0)
+                bound = math.hypot(dx, dy)
+                if h is not None:
+                    angle = abs((h - lane_heading + math.pi) % _TWO_PI - math.pi) - half_width
+                    if angle > 0.0:
+                        bound = bound + angle if kind == _STRAIGHT else max(bound, angle)
+                if bound - _BOUND_TOLERANCE > best:
+                    continue
+            distance = lane.distance_with_heading(position, heading)
             if distance < best or (distance == best and i < best_i):
                 best, best_i = distance, i
         return lanes[best_i][0]
+
+    def _cell_candidates(self, cell: tuple[int, int]) -> list[tuple[float, int]]:
+        """
+        :param cell: a grid cell (``CELL`` metres square)
+        :return: every lane's lower bound over the cell (the distance from the cell to the lane's box; ``-inf``
+            for lanes without a bound) and its position in the network's order, nearest first
+        """
+        if len(self._cells) >= self.MAX_CELLS:
+            self._cells.clear()
+        x0, y0 = cell[0] * self.CELL, cell[1] * self.CELL
+        x1, y1 = x0 + self.CELL, y0 + self.CELL
+        candidates = []
+        for i, (_, _, (kind, x_min, y_min, x_max, y_max, _, _)) in enumerate(self._lane_bounds()):
+            if kind == _OTHER:
+                candidates.append((-math.inf, i))
+                continue
+            dx = max(x_min - x1, x0 - x_max, 0.0)
+            dy = max(y_min - y1, y0 - y_max, 0.0)
+            candidates.append((math.hypot(dx, dy) - _BOUND_TOLERANCE, i))
+        candidates.sort()
+        self._cells[cell] = candidates
+        return candidates
+
+
+def _lateral_filter(lane: AbstractLane, margin: float) -> Any:
+    """
+    A test that rules out, at the cost of a few float operations, positions that ``lane.on_lane(..., margin)``
+    rejects for their lateral offset: the offset is computed in Python floats (it may differ from the lane's own in
+    the last bits, hence the tolerance) and compared with the half width plus the margin.
+
+    :param lane: a lane
+    :param margin: the margin of the ``on_lane`` check [m]
+    :return: ``far(position) -> bool``, true only for positions off the lane; ``None`` for lanes of other kinds
+    """
+    if type(lane) in (StraightLane, RememberingStraightLane):
+        (x0, y0), (nx, ny) = lane.start, lane.direction_lateral
+        x0, y0, nx, ny = float(x0), float(y0), float(nx), float(ny)
+        limit = lane.width / 2 + margin + _BOUND_TOLERANCE
+        return lambda position: abs((position[0] - x0) * nx + (position[1] - y0) * ny) > limit
+    if type(lane) in (CircularLane, RememberingCircularLane):
+        (cx, cy), radius = lane.center, lane.radius
+        cx, cy = float(cx), float(cy)
+        limit = lane.width / 2 + margin + _BOUND_TOLERANCE
+        return lambda position: abs(radius - math.hypot(position[0] - cx, position[1] - cy)) > limit
+    return None
 
 
 def _may_touch(vehicle: Any, other: Any, dt: float) -> bool:
@@ -218,7 +282,7 @@ class FastRoad(Road):
     module docstring). Takes ``Road``'s arguments.
     """
 
-    _lane_coordinates: dict[int, tuple[list[tuple[Any, float]], dict[int, float]]] | None = None
+    _lane_coordinates: dict[int, list[tuple[Any, float]]] | None = None
 
     def act(self) -> None:
         """``Road.act()``, with each vehicle's coordinates on each lane queried computed once for all vehicles."""
@@ -228,21 +292,21 @@ class FastRoad(Road):
         finally:
             self._lane_coordinates = None
 
-    def _coordinates_on(self, lane: AbstractLane) -> tuple[list[tuple[Any, float]], dict[int, float]]:
+    def _coordinates_on(self, lane: AbstractLane) -> list[tuple[Any, float]]:
         """
         :param lane: a lane
         :return: the vehicles and objects on it (``on_lane`` with highway-env's 1 m margin) with their longitudinal
-            coordinate, in the road's order, and the longitudinal coordinate of every vehicle by ``id``
+            coordinate, in the road's order
         """
-        on_lane, longitudinal = [], {}
+        on_lane = []
+        far = _lateral_filter(lane, margin=1.0)
         for v in self.vehicles + self.objects:
-            if isinstance(v, Landmark):
+            if isinstance(v, Landmark) or (far is not None and far(v.position)):
                 continue
             s_v, lat_v = lane.local_coordinates(v.position)
-            longitudinal[id(v)] = s_v
             if lane.on_lane(v.position, s_v, lat_v, margin=1):
                 on_lane.append((v, s_v))
-        return on_lane, longitudinal
+        return on_lane
 
     def neighbour_vehicles(self, vehicle: RoadObject, lane_index: LaneIndex | None = None) -> tuple[Any, Any]:
         """
@@ -262,12 +326,9 @@ class FastRoad(Road):
         coordinates = cache.get(id(lane))
         if coordinates is None:
             coordinates = cache[id(lane)] = self._coordinates_on(lane)
-        on_lane, longitudinal = coordinates
-        s = longitudinal.get(id(vehicle))
-        if s is None:
-            s = lane.local_coordinates(vehicle.position)[0]
+        s = lane.local_coordinates(vehicle.position)[0]
         s_front = s_rear = v_front = v_rear = None
-        for v, s_v in on_lane:
+        for v, s_v in coordinates:
             if v is vehicle:
                 continue
             if s <= s_v and (s_front is None or s_v <= s_front):
