@@ -24,7 +24,8 @@ timing ``env.step`` only (resets are not timed), in CPU time of the process by d
   ``sb3_dacerf.envs.driving.common.simulation``, which give the same traffic (the same episodes for the same seeds):
   ``speed-up = t_step(that) / t_step(ours)``.
 
-``--scripted`` checks instead that the two simulations drive the same episodes: the scripted drivers
+``--profile`` prints instead where the steps spend their time (cProfile, both simulations, the functions that
+dominate highway-env's). ``--scripted`` checks instead that the two simulations drive the same episodes: the scripted drivers
 (``ScriptedDriver`` on both scenarios, ``JunctionDriver`` at the intersection) on 50 unseen seeds (10,000-10,049), each
 with both simulations, printing the arrival and collision rates and how many episodes differ in any observation,
 reward or flag.
@@ -33,6 +34,7 @@ Usage::
 
     python benchmarks/driving_env_speed.py [--steps 100] [--rounds 15] [--density normal] [--quick]
     python benchmarks/driving_env_speed.py --scripted [--density normal] [--seeds 50]
+    python benchmarks/driving_env_speed.py --profile --steps 600 [--density normal]
 
 On a shared machine the load average (printed) moves all numbers; the ratios, measured interleaved, move less.
 """
@@ -197,6 +199,58 @@ def check_scripted(density: str, n_seeds: int) -> None:
                 print(f"| {' | '.join(cells)} |")
 
 
+PROFILED = {
+    "Road.act (traffic decisions: IDM, MOBIL)": ("act", ("road.py", "simulation.py")),
+    "Road.neighbour_vehicles": ("neighbour_vehicles", ("road.py", "simulation.py")),
+    "Road.step (moves, collisions)": ("step", ("road.py", "regulation.py", "simulation.py")),
+    "RegulatedRoad.enforce_road_rules": ("enforce_road_rules", ("regulation.py", "simulation.py")),
+    "copy.deepcopy": ("deepcopy", ("copy.py",)),
+    "RoadNetwork.get_closest_lane_index": ("get_closest_lane_index", ("road.py", "simulation.py")),
+    "np.clip": ("clip", ("fromnumeric.py",)),
+    "observe_scene (our observation)": ("observe_scene", ("observation.py",)),
+}
+"""Rows of the profile table: (function name, files it may be defined in); overrides and the functions they call
+share a name, so the largest cumulative time among the matches is the one shown."""
+
+
+def profile(steps: int, density: str) -> None:
+    """Print where ``steps`` steps of each scenario spend their time under cProfile, with both simulations."""
+    import cProfile
+    import pstats
+
+    print(f"density={density}, {steps} steps per scenario and simulation, zero action, cProfile (cumulative CPU seconds)\n")
+    columns, tables = [], {}
+    for scenario, env_class in (("multilane", MultilaneEnv), ("intersection", IntersectionEnv)):
+        for fast in (False, True):
+            env = env_class(density=density, config={"fast_simulation": fast})
+            env.reset(seed=0)
+            profiler = cProfile.Profile(time.process_time)  # CPU time: other processes move it far less
+            profiler.enable()
+            time_steps(env, steps, seed=0)
+            profiler.disable()
+            stats = pstats.Stats(profiler).stats  # type: ignore[attr-defined]
+            simulation = "fast" if fast else "highway-env's classes"
+            column = f"{scenario}, {simulation}"
+            columns.append(column)
+            env_step = [
+                cumulative
+                for (path, _, name), (_, _, _, cumulative, _) in stats.items()
+                if name == "step" and path.endswith(("abstract.py", "intersection.py"))
+            ]
+            tables[column] = {"env.step": max(env_step)}
+            for row, (function, files) in PROFILED.items():
+                times = [
+                    cumulative
+                    for (path, _, name), (_, _, _, cumulative, _) in stats.items()
+                    if name == function and path.endswith(files)
+                ]
+                tables[column][row] = max(times, default=0.0)
+    print(f"| function | {' | '.join(columns)} |")
+    print(f"|---|{'---|' * len(columns)}")
+    for row in ["env.step", *PROFILED]:
+        print(f"| {row} | {' | '.join(f'{tables[column][row]:.2f}' for column in columns)} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=100, help="steps per environment and round")
@@ -212,8 +266,12 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="a short check: 50 steps x 4 rounds")
     parser.add_argument("--scripted", action="store_true", help="compare the scripted drivers' episodes on both simulations")
     parser.add_argument("--seeds", type=int, default=50, help="with --scripted: episodes per driver and simulation")
+    parser.add_argument("--profile", action="store_true", help="profile --steps steps (600 or more) of each scenario")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.profile:
+        profile(args.steps, args.density)
+        return
     if args.scripted:
         check_scripted(args.density, 5 if args.quick else args.seeds)
         return

@@ -161,6 +161,10 @@ class IndexedRoadNetwork(RoadNetwork):
         }
         return indexed
 
+    def __getstate__(self) -> dict:
+        # The lane bounds and grid cells are rebuilt on demand: a pickled network (a checkpoint's env) stays small.
+        return {key: value for key, value in self.__dict__.items() if key not in ("_bounds", "_cells")}
+
     def add_lane(self, _from: str, _to: str, lane: AbstractLane) -> None:
         super().add_lane(_from, _to, lane)
         self._bounds = None
