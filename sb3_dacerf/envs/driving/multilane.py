@@ -140,6 +140,9 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         if config["fast_simulation"]:
             vehicle_type = fast_vehicle_class(vehicle_type)
         ego_x, ego_lane = self.vehicle.position[0], self.vehicle.lane_index
+        abscissas: dict[LaneIndex, list[float]] = {}  # of the vehicles on each lane, gathered once for the 50 draws
+        for v in self.road.vehicles:
+            abscissas.setdefault(v.lane_index, []).append(v.position[0])
         for _ in range(50):
             lane_index: LaneIndex = ("0", "1", int(rng.integers(config["lanes_count"])))
             x = rng.uniform(low, high)
@@ -147,7 +150,7 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
                 continue
             if abs(x - ego_x) < self.TRAFFIC_GAP:  # nobody alongside the ego either
                 continue
-            if any(v.lane_index == lane_index and abs(v.position[0] - x) < self.TRAFFIC_GAP for v in self.road.vehicles):
+            if any(abs(v_x - x) < self.TRAFFIC_GAP for v_x in abscissas.get(lane_index, ())):
                 continue
             vehicle = vehicle_type.make_on_lane(self.road, lane_index, x, speed=rng.uniform(*config["traffic_speed_range"]))
             vehicle.randomize_behavior()

@@ -93,10 +93,12 @@ class _RememberedCoordinates:
     """
 
     MEMORY = 4096
-    _memory: dict[tuple[float, float], tuple[float, float]]
+    _memory: dict[bytes, tuple[float, float]]
 
     def local_coordinates(self, position: np.ndarray) -> tuple[float, float]:
-        key = (float(position[0]), float(position[1]))
+        if type(position) is not np.ndarray or position.dtype != np.float64 or position.shape != (2,):
+            return super().local_coordinates(position)  # type: ignore[misc]  # the lane's
+        key = position.tobytes()  # the exact bits: positions that compare equal but differ (-0.0, 0.0) are two keys
         coordinates = self._memory.get(key)
         if coordinates is None:
             if len(self._memory) >= self.MEMORY:
@@ -376,7 +378,8 @@ def predict_constant_speed(vehicle: Vehicle, times: np.ndarray) -> tuple[list[np
     if type(vehicle).predict_trajectory_constant_speed is not Vehicle.predict_trajectory_constant_speed:
         return vehicle.predict_trajectory_constant_speed(times)
     detached = copy.copy(vehicle)
-    detached.road, detached.history, detached.log = None, deque(maxlen=vehicle.history.maxlen), []
+    # Without the road, the lane (and its remembered coordinates) and the trail, which the roll-out does not read
+    detached.road, detached.lane, detached.history, detached.log = None, None, deque(maxlen=vehicle.history.maxlen), []
     return Vehicle.predict_trajectory_constant_speed(detached, times)
 
 
