@@ -11,6 +11,7 @@ import pytest
 
 pytest.importorskip("highway_env")
 
+from highway_env.road.lane import CircularLane, StraightLane
 from highway_env.road.regulation import RegulatedRoad
 from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.behavior import IDMVehicle
@@ -125,6 +126,31 @@ def test_closest_lane_is_highway_env_s(env_class):
     for position, heading in zip(positions, headings, strict=True):
         assert network.get_closest_lane_index(position, heading) == RoadNetwork.get_closest_lane_index(network, position, heading)
         assert network.get_closest_lane_index(position) == RoadNetwork.get_closest_lane_index(network, position)
+
+
+def test_closest_lane_of_a_position_that_is_not_finite_is_highway_env_s():
+    network = stepped(IntersectionEnv, steps=0).road.network
+    for position, heading in (([np.nan, 3.0], 0.0), ([2.0, np.inf], None), ([2.0, -30.0], np.nan)):
+        position = np.array(position)
+        with np.errstate(invalid="ignore"):  # highway-env's own search warns about these
+            assert network.get_closest_lane_index(position, heading) == RoadNetwork.get_closest_lane_index(
+                network, position, heading
+            )
+
+
+def test_remembered_lane_coordinates_are_the_lane_s():
+    network = stepped(IntersectionEnv, steps=0).road.network
+    rng = np.random.default_rng(1)
+    for lane in network.lanes_list():
+        base = type(lane).__mro__[2]  # the highway-env lane class after the remembering mixin
+        assert base in (StraightLane, CircularLane)
+        for position in [*rng.uniform(-60, 60, size=(20, 2)), np.array([0.0, -0.0]), np.array([-0.0, 0.0])]:
+            for _ in range(2):  # computed, then remembered
+                assert lane.local_coordinates(position) == base.local_coordinates(lane, position)
+            assert lane.local_coordinates(list(position)) == base.local_coordinates(lane, np.array(position))
+        # positions equal but for the sign of a zero are remembered apart
+        signs = [np.copysign(1.0, c) for c in lane.local_coordinates(np.array([0.0, -0.0]))]
+        assert signs == [np.copysign(1.0, c) for c in base.local_coordinates(lane, np.array([0.0, -0.0]))]
 
 
 @pytest.mark.parametrize("env_class", SCENARIOS)
