@@ -8,7 +8,9 @@ reference path and the paper's reward / cost terms. Laid out like highway-env's 
 - :mod:`.observation`: :class:`Scene` (what the ego perceives, computed once per step) and
   :class:`EgoFrameObservation`, the flat ego-frame observation;
 - :mod:`.reference`: :class:`ReferencePath`, the reference path and its arc-length lookups;
-- :mod:`.reward`: the paper's reward and cost terms.
+- :mod:`.reward`: the paper's reward and cost terms;
+- :mod:`.simulation`: faster versions of highway-env's road, lane network and IDM vehicle that give the same
+  traffic (config ``fast_simulation``, on by default).
 
 The environments subclass highway-env's own ``HighwayEnv`` and ``IntersectionEnv``; this layer replaces their action,
 observation, reward, termination and info with the paper's task design (DACER-F, section "Simulation Environment" and
