@@ -299,7 +299,8 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     else:
         model = new_model(job, algorithm, kwargs)
         if job.get("demonstrations"):
-            from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS, add_scripted_transitions
+            from sb3_dacerf.common.demonstrations import add_scripted_transitions
+            from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
 
             add_scripted_transitions(model, job["demonstrations"], driver=DEMONSTRATORS[job.get("demonstrator", "scripted")])
     resumed_at = model.num_timesteps

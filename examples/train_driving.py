@@ -45,8 +45,9 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
+from sb3_dacerf.common.demonstrations import add_scripted_transitions
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
-from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS, add_scripted_transitions
+from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths, policy_act
@@ -111,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=0,
         help="put that many transitions of the scripted driver in a new model's replay buffer before it trains "
-        "(sb3_dacerf.envs.driving.scripted.add_scripted_transitions; not counted in --timesteps; needs --n-envs 1)",
+        "(sb3_dacerf.common.demonstrations.add_scripted_transitions; not counted in --timesteps; needs --n-envs 1)",
     )
     parser.add_argument(
         "--demonstration-fraction",

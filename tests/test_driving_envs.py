@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("highway_env")
 
-import sb3_dacerf  # noqa: F401  (registers the ids)
+import sb3_dacerf  # registers the ids
 from sb3_dacerf.envs.driving.common import (
     EGO_FEATURES,
     REWARD_TERMS,
@@ -371,6 +371,60 @@ def test_demonstrator_names_are_the_drivers_names():
 
     assert DEMONSTRATOR_NAMES == tuple(DEMONSTRATORS)
     assert DEMONSTRATORS == {"scripted": ScriptedDriver, "junction": JunctionDriver}
+
+
+def module_imports(path) -> set[str]:
+    """The modules a source file imports, except inside a module-level ``__getattr__`` (deprecated aliases)."""
+    import ast
+
+    tree = ast.parse(open(path).read())
+    aliases = [node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == "__getattr__"]
+    skipped = {id(node) for alias in aliases for node in ast.walk(alias)}
+    imported = set()
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        if isinstance(node, ast.Import):
+            imported.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            imported.add(node.module)
+    return imported
+
+
+def test_environments_import_nothing_from_the_algorithms():
+    from pathlib import Path
+
+    root = Path(sb3_dacerf.__file__).parent
+    for path in sorted((root / "envs").rglob("*.py")):
+        algorithm_layer = {
+            name
+            for name in module_imports(path)
+            if name.startswith(("sb3_dacerf.common", "sb3_dacerf.dacer", "stable_baselines3"))
+        }
+        assert not algorithm_layer, f"{path.relative_to(root)} imports {sorted(algorithm_layer)}"
+    # and the task layer's modules import each other without a circle
+    common = root / "envs" / "driving" / "common"
+    graph = {
+        path.stem: {name.rsplit(".", 1)[1] for name in module_imports(path) if name.startswith("sb3_dacerf.envs.driving.common.")}
+        for path in common.glob("*.py")
+        if path.stem != "__init__"
+    }
+
+    def reaches(start: str, target: str, seen: set[str]) -> bool:
+        return any(nxt == target or (nxt not in seen and reaches(nxt, target, seen | {nxt})) for nxt in graph[start])
+
+    assert not [module for module in graph if reaches(module, module, {module})]
+
+
+def test_the_demonstrations_moved_with_a_deprecated_alias():
+    from sb3_dacerf.common import demonstrations
+    from sb3_dacerf.envs.driving import scripted
+
+    with pytest.warns(DeprecationWarning, match=r"moved to sb3_dacerf\.common\.demonstrations\.add_scripted_transitions"):
+        from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
+    assert add_scripted_transitions is demonstrations.add_scripted_transitions
+    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
+        scripted.no_such_name  # noqa: B018  (the attribute access is the test)
 
 
 @pytest.mark.parametrize(
@@ -928,7 +982,8 @@ def test_scripted_transitions_fill_a_model_s_replay_buffer():
     from stable_baselines3 import SAC
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from sb3_dacerf.envs.driving.scripted import ScriptedDriver, add_scripted_transitions
+    from sb3_dacerf.common.demonstrations import add_scripted_transitions
+    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
 
     vec_env = VecNormalize(DummyVecEnv([lambda: make("DACERF-Intersection-v0", duration=5)]), norm_reward=False)
     model = SAC("MlpPolicy", vec_env, seed=3, learning_starts=10, buffer_size=1_000)
