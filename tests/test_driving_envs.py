@@ -603,6 +603,79 @@ def test_density_changes_vehicle_count():
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
+def test_density_drawn_per_episode_from_the_reset_seed(env_id):
+    env = gym.make(env_id, density={"sparse": 1, "dense": 3}, config={"duration": 1})
+    unwrapped = env.unwrapped
+    drawn = []
+    for seed in range(40):
+        _, info = env.reset(seed=seed)
+        drawn.append(info["density"])
+        assert info["density"] == unwrapped.density
+        # the episode has the drawn density's traffic settings
+        overrides = type(unwrapped).DENSITY_CONFIGS[info["density"]]
+        assert overrides and {key: unwrapped.config[key] for key in overrides} == overrides
+    assert set(drawn) == {"sparse", "dense"} and 20 < drawn.count("dense") < 40
+    # the same seeds draw the same densities and the same episodes, in any order
+    again = {seed: env.reset(seed=seed) for seed in (7, 3)}
+    assert [again[seed][1]["density"] for seed in (7, 3)] == [drawn[7], drawn[3]]
+    np.testing.assert_array_equal(again[3][0], env.reset(seed=3)[0])
+    assert unwrapped.density_weights == {"sparse": 0.25, "dense": 0.75}
+    assert make(env_id).unwrapped.density_weights == {"normal": 1.0}
+    uniform = gym.make(env_id, density="random").unwrapped.density_weights
+    assert uniform == pytest.approx({"sparse": 1 / 3, "normal": 1 / 3, "dense": 1 / 3})
+    assert gym.make(env_id, density=["dense", "sparse"]).unwrapped.density_weights == {"sparse": 0.5, "dense": 0.5}
+
+
+def test_multilane_density_sets_the_vehicle_count_of_each_episode():
+    env = gym.make("DACERF-Multilane-v0", density="random", config={"duration": 1})
+    counts = {}
+    for seed in range(12):
+        _, info = env.reset(seed=seed)
+        counts.setdefault(info["density"], set()).add(len(env.unwrapped.road.vehicles) - 1)
+    assert counts == {"sparse": {6}, "normal": {12}, "dense": {20}}
+
+
+@pytest.mark.parametrize(
+    "density, error, message",
+    [
+        ("heavy", ValueError, r"Unknown density 'heavy': expected one of 'sparse', 'normal', 'dense', 'random'"),
+        ([], ValueError, r"density=\[\] lists no density"),
+        (["sparse", "sparse"], ValueError, r"lists 'sparse' more than once: .* a dict of weights"),
+        (["sparse", "busy"], ValueError, r"Unknown density 'busy' in density=\['sparse', 'busy'\]"),
+        ({"sparse": -1}, ValueError, r"the weight of 'sparse' must be a finite number >= 0, got -1"),
+        ({"dense": float("nan")}, ValueError, r"the weight of 'dense' must be a finite number >= 0, got nan"),
+        ({"sparse": 0, "dense": 0}, ValueError, r"the weights sum to 0, .* give one a weight > 0"),
+        ({"sparse": "1"}, ValueError, r"the weight of 'sparse' must be a finite number >= 0, got '1'"),
+        (3, TypeError, r"density must be a string, a list or a dict, got 3 \(int\)"),
+    ],
+)
+def test_bad_densities_raise_clear_errors(density, error, message):
+    with pytest.raises(error, match=message):
+        gym.make("DACERF-Multilane-v0", density=density)
+
+
+def test_drawn_densities_refuse_config_keys_they_set():
+    with pytest.raises(ValueError, match=r"config \['vehicles_count'\] is what each episode's density sets.*leave"):
+        gym.make("DACERF-Multilane-v0", density="random", config={"vehicles_count": 3})
+    env = gym.make("DACERF-Intersection-v0", density=["sparse", "normal"])
+    with pytest.raises(ValueError, match=r"config \['spawn_probability'\] is what each episode's density sets"):
+        env.reset(options={"config": {"spawn_probability": 0.5}})
+    # one density keeps the config's value over the density's
+    env = gym.make("DACERF-Multilane-v0", density="sparse", config={"vehicles_count": 3})
+    env.reset(seed=0)
+    assert len(env.unwrapped.road.vehicles) - 1 == 3
+
+
+def test_env_pickled_before_density_distributions_unpickles():
+    env = gym.make("DACERF-Multilane-v0", density="dense", config={"duration": 1}).unwrapped
+    state = env.__getstate__() if hasattr(env, "__getstate__") else dict(env.__dict__)
+    state = {key: value for key, value in state.items() if key != "density_weights"}
+    restored = type(env).__new__(type(env))
+    restored.__setstate__(state)
+    assert restored.density == "dense" and restored.density_weights == {"dense": 1.0}
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
 def test_ego_starts_near_its_reference_speed(env_id):
     # A start far from the target speed makes leaving the road (-200) cheaper than catching up at ±0.8 m/s²
     env = make(env_id)
@@ -794,6 +867,8 @@ def test_check_env(env_id):
 
     gym_check_env(make(env_id).unwrapped, skip_render_check=True)
     sb3_check_env(make(env_id), warn=True)
+    # with the density drawn per episode (the checker's seeded resets must be reproducible)
+    gym_check_env(gym.make(env_id, density="random", config={"duration": 3}).unwrapped, skip_render_check=True)
 
 
 def test_scene_is_perceived_once_per_step_and_observe_has_no_side_effect(monkeypatch):
