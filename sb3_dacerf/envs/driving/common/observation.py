@@ -33,6 +33,17 @@ WAYPOINT_FEATURES = 4
 VEHICLE_FEATURES = 6
 
 
+def vehicle_rows(config: dict) -> tuple[int, int, int]:
+    """
+    Where the surrounding vehicles are in the flat observation of an env with this config: the ``rows`` of
+    :class:`sb3_dacerf.common.vec_normalize.MaskedVecNormalize`.
+
+    :param config: the env's config (``reference_waypoints``, ``surrounding_vehicles``)
+    :return: the index of the first vehicle entry, the number of vehicle rows (M) and their length (6, the mask last)
+    """
+    return EGO_FEATURES + WAYPOINT_FEATURES * config["reference_waypoints"], config["surrounding_vehicles"], VEHICLE_FEATURES
+
+
 class PerceivingEnv(Protocol):
     """
     What :func:`observe_scene` and :class:`EgoFrameObservation` read of an env: the paper's driving envs
