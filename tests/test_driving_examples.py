@@ -240,6 +240,24 @@ def test_zero_empty_rows_changes_only_the_empty_rows(trained, capsys):
     assert "--zero-empty-rows changes a model's normalised observations" in capsys.readouterr().err
 
 
+def test_density_diagnosis_reads_the_statistics_and_changes_the_observation():
+    """benchmarks/driving_density.py: the shipped multi-lane driver's statistics, and the observation changes."""
+    import torch
+
+    torch.set_num_threads(1)
+    diagnosis = load_example("driving_density", BENCHMARKS)
+    driver = diagnosis.load_driver(os.path.join(EXAMPLES, "models", "dacerf_multilane"))
+    table = diagnosis.statistics_table(driver.vec_normalize, (45, 8, 6)).splitlines()
+    assert len(table) == 10 and table[2].startswith("| 1 | 100.0% | -10.0 | -10.0 |")  # row 1 always filled, clipped
+    driver.config = {**driver.config, "duration": 2}
+    nearest = diagnosis.run(driver, "normal", 4, False, 1, 77_000)
+    assert nearest["vehicles_mean"] == 4 and nearest["clipped"] > 0
+    zeroed = diagnosis.run(driver, "normal", 4, True, 1, 77_000)
+    assert zeroed["vehicles_mean"] == 4 and zeroed["clipped"] == 0
+    low, mean, high = zeroed["reference_speed"]
+    assert 0 < low <= mean <= high
+
+
 def test_evaluate_errors_name_the_problem(trained, tmp_path):
     evaluate = load_example("evaluate_driving")
     with pytest.raises(SystemExit, match=r"no model file.*train_driving.py --save"):
