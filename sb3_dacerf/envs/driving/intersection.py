@@ -129,7 +129,8 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
 
     :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
     :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
+    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``, or ``"random"``, a list or a
+        dict of weights to draw one per episode (:mod:`sb3_dacerf.envs.driving.density`)
     """
 
     road: RegulatedRoad

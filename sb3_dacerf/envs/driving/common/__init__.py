@@ -17,7 +17,7 @@ observation, reward, termination and info with the paper's task design (DACER-F,
 the reward / cost table). Units are SI throughout. Each module's docstring describes its part.
 """
 
-from sb3_dacerf.envs.driving.common.abstract import DENSITIES, PaperDrivingMixin
+from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.action import IncrementalAction
 from sb3_dacerf.envs.driving.common.observation import (
     EGO_FEATURES,
@@ -29,6 +29,7 @@ from sb3_dacerf.envs.driving.common.observation import (
 )
 from sb3_dacerf.envs.driving.common.reference import ReferencePath
 from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, pseudo_huber, reward_terms
+from sb3_dacerf.envs.driving.density import DENSITIES
 
 __all__ = [
     "DENSITIES",
