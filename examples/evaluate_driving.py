@@ -358,10 +358,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument(
         "--zero-empty-rows",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
         default=None,
         help="give the empty vehicle rows zeros after normalisation (for drivers whose training saw every row filled; "
-        "default: the metadata's zero_empty_rows)",
+        "default: the metadata's zero_empty_rows; --no-zero-empty-rows turns it off)",
     )
     parser.add_argument("--config", type=json.loads, help="env config overrides as JSON, e.g. '{\"duration\": 20}'")
     parser.add_argument("--episodes", type=int, default=20)
