@@ -102,3 +102,35 @@ def test_sac_keeps_rl_zoo_behaviour():
     model.learn(200, callback=callback)
     assert "_sb3_dacerf_parallel_training" not in vars(callback)
     assert callback.model_class is SAC and callback._model._n_updates > 0
+
+
+PARALLEL_YAML = """
+Pendulum-v1:
+  policy: 'MlpPolicy'
+  n_timesteps: 400
+  learning_starts: 50
+  batch_size: 32
+  langevin_steps: 2
+  policy_kwargs: "dict(net_arch=[32, 32])"
+  callback:
+    - rl_zoo3.callbacks.ParallelTrainCallback:
+        gradient_steps: 10
+"""
+
+
+@pytest.mark.slow
+def test_rl_zoo_yaml_entry_with_parallel_train_callback(tmp_path):
+    from test_zoo import zoo
+
+    (tmp_path / "parallel.yml").write_text(PARALLEL_YAML)
+    run_args = ["--algo", "dacerf", "--env", "Pendulum-v1", "-f", "logs"]
+    options = ["--conf-file", "parallel.yml", "--num-threads", "1", "--seed", "0"]
+    checkpoints = ["--eval-freq", "200", "--eval-episodes", "1", "--save-freq", "200"]
+    zoo("train", *run_args, *options, *checkpoints, cwd=tmp_path)
+    run = tmp_path / "logs" / "dacerf" / "Pendulum-v1_1"
+    model = DACERF.load(run / "Pendulum-v1.zip")
+    assert model.num_timesteps == 400 and model._n_updates > 0 and model._n_updates % 10 == 0
+    assert DACERF.load(run / "rl_model_200_steps.zip").num_timesteps == 200
+    assert (run / "best_model.zip").is_file()
+    enjoy = zoo("enjoy", *run_args, "--exp-id", "1", "-n", "50", "--no-render", cwd=tmp_path)
+    assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
