@@ -345,6 +345,8 @@ class ParallelTraining:
         self.trainer.set_logger(Logger(folder=None, output_formats=[]))
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
+        # Whether the trainer has taken gradient steps since the model last received its parameters
+        self.has_news = False
         self._instance_methods = {name: vars(model).get(name) for name in ("train", "save")}
         model.train = _no_gradient_step  # type: ignore[method-assign]
         model.save = self.save  # type: ignore[method-assign]
@@ -369,8 +371,11 @@ class ParallelTraining:
             setattr(self.trainer, name, getattr(self.model, name))
 
     def exchange(self) -> None:
-        """With the trainer idle: its parameters, update count and logged values go to the model."""
+        """With the trainer idle: its parameters, update count and logged values go to the model (if it has trained since)."""
         assert not self.running, "the trainer's parameters are read while it trains"
+        if not self.has_news:
+            return
+        self.has_news = False
         # SB3 annotates set_parameters' argument narrower than what get_parameters returns (state dicts)
         parameters: Any = copy.deepcopy(self.trainer.get_parameters())
         self.model.set_parameters(parameters, device=self.model.device)
@@ -394,6 +399,7 @@ class ParallelTraining:
         # A copy without the environments (VecNormalize does not pickle them): statistics as of this buffer
         self.trainer._vec_normalize_env = copy.deepcopy(self.model.get_vec_normalize_env())
         self._copy_progress()
+        self.has_news = True
         self.thread = threading.Thread(target=self._train, args=(gradient_steps, batch_size), daemon=True)
         self.thread.start()
 
