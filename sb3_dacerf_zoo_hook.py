@@ -3,8 +3,8 @@ Start-up hook that makes ``python -m rl_zoo3.train --algo dacerf ...`` (and ``--
 
 ``pip install`` puts ``sb3_dacerf_zoo.pth`` (Python <= 3.14) and ``sb3_dacerf_zoo.start`` (PEP 829, Python >= 3.15)
 in site-packages; both call :func:`install` at interpreter start. That only adds a finder to ``sys.meta_path``
-and imports nothing: when RL Zoo's ``utils``, ``hyperparams_opt`` or ``exp_manager`` module has been executed,
-:func:`sb3_dacerf.zoo.register` adds DACERF and DACER to it. Set ``SB3_DACERF_NO_ZOO_HOOK=1`` to turn the hook off.
+and imports nothing: when RL Zoo's ``utils``, ``hyperparams_opt``, ``exp_manager`` or ``callbacks`` module has been
+executed, :func:`sb3_dacerf.zoo.register` adds DACERF and DACER to it. Set ``SB3_DACERF_NO_ZOO_HOOK=1`` to turn the hook off.
 """
 
 import os
@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from types import ModuleType
     from typing import Any
 
-ZOO_MODULES = frozenset({"rl_zoo3.utils", "rl_zoo3.hyperparams_opt", "rl_zoo3.exp_manager"})
+ZOO_MODULES = frozenset({"rl_zoo3.utils", "rl_zoo3.hyperparams_opt", "rl_zoo3.exp_manager", "rl_zoo3.callbacks"})
 
 
 class _RegisteringLoader:

@@ -8,22 +8,28 @@ With a database ``--storage`` (``postgresql://...``), ``-optimize`` studies get 
 by the next worker that starts a trial, instead of staying RUNNING forever; and workers started at the same moment
 on a new database no longer fail creating Optuna's tables.
 
+RL Zoo's ``ParallelTrainCallback`` (``-params callback:"'rl_zoo3.callbacks.ParallelTrainCallback'"``), gradient
+steps in a thread while the environment steps, works with DACERF and DACER as with SAC: see :class:`ParallelTraining`.
+
 RL Zoo fixes its ``--algo`` choices from ``rl_zoo3.utils.ALGOS`` before it imports ``--gym-packages``, so DACERF
 and DACER have to be there earlier: the start-up hook ``sb3_dacerf_zoo_hook`` (installed by ``pip install .``) calls
-:func:`register` on ``rl_zoo3.utils``, ``rl_zoo3.hyperparams_opt`` and ``rl_zoo3.exp_manager`` as soon as each is
-imported. Where the hook is not installed, ``python -m sb3_dacerf.zoo train --algo dacerf ...`` (any RL Zoo script
-name in place of ``train``) registers both algorithms and runs the script.
+:func:`register` on ``rl_zoo3.utils``, ``rl_zoo3.hyperparams_opt``, ``rl_zoo3.exp_manager`` and ``rl_zoo3.callbacks``
+as soon as each is imported. Where the hook is not installed, ``python -m sb3_dacerf.zoo train --algo dacerf ...``
+(any RL Zoo script name in place of ``train``) registers both algorithms and runs the script.
 
 This module is imported only together with RL Zoo: it imports torch, Stable-Baselines3, DACERF and DACER.
 """
 
 import contextlib
+import copy
 import functools
 import inspect
+import io
 import os
 import random
 import runpy
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -32,10 +38,14 @@ from typing import TYPE_CHECKING, Any
 
 import optuna
 import yaml
+from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import recursive_getattr
 
 from sb3_dacerf import DACER, DACERF
 
 if TYPE_CHECKING:
+    from rl_zoo3.callbacks import ParallelTrainCallback
     from rl_zoo3.exp_manager import ExperimentManager
 
 # Wheels ship the YAML files inside the package; source checkouts and editable installs keep them at the repository root
@@ -307,10 +317,185 @@ def _patch_experiment_manager(cls: "type[ExperimentManager]") -> None:
     setattr(cls, _PATCHED_MARK, True)
 
 
+class ParallelTraining:
+    """
+    What RL Zoo's ``ParallelTrainCallback`` does for an algorithm of this package (:data:`ALGORITHMS`): a copy of
+    the model, the *trainer*, takes the gradient steps in a thread while the model collects transitions with the
+    latest parameters it received.
+
+    Whenever the trainer is idle at the end of a rollout, its parameters (the policy with ``α``, which lives in the
+    actor, the optimizers, any tensor the algorithm saves besides them), its update count and the values it logged
+    go to the model; the trainer then gets a copy of the replay buffer and of the ``VecNormalize`` statistics, and the
+    model's progress (time steps, so that learning-rate schedules advance), and takes ``gradient_steps`` steps in a
+    new thread. The model's own ``train()`` does nothing meanwhile. ``save()`` waits for a running round, then
+    writes the trainer (with the model's progress); :meth:`close` waits for the last round and gives the model
+    everything back, so that after ``learn()`` it is an ordinary, fully trained model. An error in the thread (e.g. a
+    non-finite loss) is raised in the main thread at the next rollout end.
+
+    :param model: The model that ``learn()`` trains, one of this package's algorithms
+    """
+
+    def __init__(self, model: OffPolicyAlgorithm):
+        self.model = model
+        with io.BytesIO() as file:
+            model.save(file)
+            file.seek(0)
+            self.trainer: OffPolicyAlgorithm = type(model).load(file, device=model.device)
+        # Its own logger: the thread must not write into the dictionaries the main thread dumps
+        self.trainer.set_logger(Logger(folder=None, output_formats=[]))
+        self.thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+        # Whether the trainer has taken gradient steps since the model last received its parameters
+        self.has_news = False
+        self._instance_methods = {name: vars(model).get(name) for name in ("train", "save")}
+        model.train = _no_gradient_step  # type: ignore[method-assign]
+        model.save = self.save  # type: ignore[method-assign]
+        self.closed = False
+
+    @property
+    def running(self) -> bool:
+        """Whether a round of gradient steps is under way in the thread."""
+        return self.thread is not None and self.thread.is_alive()
+
+    def wait(self) -> None:
+        """Wait for the running round, if any; raise the error that stopped it, if one did."""
+        if self.thread is not None:
+            self.thread.join()
+            self.thread = None
+        if self.error is not None:
+            error, self.error = self.error, None
+            raise error
+
+    def _copy_progress(self) -> None:
+        for name in ("num_timesteps", "_total_timesteps", "_episode_num", "_current_progress_remaining"):
+            setattr(self.trainer, name, getattr(self.model, name))
+
+    def exchange(self) -> None:
+        """With the trainer idle: its parameters, update count and logged values go to the model (if it has trained since)."""
+        assert not self.running, "the trainer's parameters are read while it trains"
+        if not self.has_news:
+            return
+        self.has_news = False
+        # SB3 annotates set_parameters' argument narrower than what get_parameters returns (state dicts)
+        parameters: Any = copy.deepcopy(self.trainer.get_parameters())
+        self.model.set_parameters(parameters, device=self.model.device)
+        for name in self.trainer._get_torch_save_params()[1]:  # tensors saved apart from state dicts (SAC's log_ent_coef)
+            recursive_getattr(self.model, name).data.copy_(recursive_getattr(self.trainer, name).data)
+        self.model._n_updates = self.trainer._n_updates
+        logged = self.trainer.logger
+        for key, value in logged.name_to_value.items():
+            self.model.logger.record(key, value, exclude=logged.name_to_excluded.get(key))
+        logged.name_to_value.clear()
+        logged.name_to_count.clear()
+        logged.name_to_excluded.clear()
+
+    def start(self, gradient_steps: int, batch_size: int) -> None:
+        """
+        Give the idle trainer the replay buffer, the ``VecNormalize`` statistics and the model's progress, and start
+        ``gradient_steps`` gradient steps on batches of ``batch_size`` in a thread.
+        """
+        assert not self.running, "a round of gradient steps is already running"
+        self.trainer.replay_buffer = copy.deepcopy(self.model.replay_buffer)
+        # A copy without the environments (VecNormalize does not pickle them): statistics as of this buffer
+        self.trainer._vec_normalize_env = copy.deepcopy(self.model.get_vec_normalize_env())
+        self._copy_progress()
+        self.has_news = True
+        self.thread = threading.Thread(target=self._train, args=(gradient_steps, batch_size), daemon=True)
+        self.thread.start()
+
+    def _train(self, gradient_steps: int, batch_size: int) -> None:
+        try:
+            self.trainer.train(gradient_steps=gradient_steps, batch_size=batch_size)
+        except BaseException as error:
+            self.error = error
+
+    def save(self, *args: Any, **kwargs: Any) -> None:
+        """The model's ``save()`` while it learns: the trainer's parameters, with the model's progress."""
+        self.wait()
+        self._copy_progress()
+        self.trainer.save(*args, **kwargs)
+
+    def close(self) -> None:
+        """
+        Wait for the last round; give the model the trainer's parameters, and its own ``train()`` and ``save()``
+        back (idempotent).
+        """
+        if self.closed:
+            return
+        self.closed = True
+        for name, method in self._instance_methods.items():
+            if method is None:
+                vars(self.model).pop(name, None)
+            else:
+                setattr(self.model, name, method)
+        self.wait()
+        self.exchange()
+
+
+def _no_gradient_step(gradient_steps: int, batch_size: int = 64) -> None:
+    """``train()`` of a model whose gradient steps a :class:`ParallelTraining` takes in a thread."""
+
+
+def _parallel_training(callback: Any) -> ParallelTraining | None:
+    return vars(callback).get("_sb3_dacerf_parallel_training")
+
+
+def _patch_parallel_train_callback(cls: "type[ParallelTrainCallback]") -> None:
+    """
+    Let RL Zoo's ``ParallelTrainCallback`` (``callback: rl_zoo3.callbacks.ParallelTrainCallback`` in a YAML entry or
+    ``-params``), which accepts SAC and TQC, train the algorithms of :data:`ALGORITHMS` through
+    :class:`ParallelTraining`; it is unchanged for SAC and TQC.
+    """
+    if getattr(cls, _PATCHED_MARK, False):
+        return
+    init_callback, on_rollout_end, on_training_end = cls._init_callback, cls._on_rollout_end, cls._on_training_end
+
+    @functools.wraps(init_callback)
+    def _init_callback(self: Any) -> None:
+        model: OffPolicyAlgorithm = self.model
+        if not isinstance(model, tuple(ALGORITHMS.values())):
+            init_callback(self)
+            return
+        training = ParallelTraining(model)
+        self._sb3_dacerf_parallel_training = training
+        # The attributes RL Zoo's callback reads or offers
+        self._model, self.model_class, self.batch_size = training.trainer, type(self.model), training.trainer.batch_size
+
+    @functools.wraps(on_rollout_end)
+    def _on_rollout_end(self: Any) -> None:
+        training = _parallel_training(self)
+        if training is None:
+            on_rollout_end(self)
+            return
+        if training.running:
+            return
+        training.wait()  # the round that just ended: raise its error, if any
+        training.exchange()
+        if self.num_timesteps >= training.trainer.learning_starts:
+            training.start(self.gradient_steps, self.batch_size)
+
+    @functools.wraps(on_training_end)
+    def _on_training_end(self: Any) -> None:
+        training = _parallel_training(self)
+        if training is None:
+            on_training_end(self)
+            return
+        if self.verbose > 0 and training.running:
+            print("Waiting for training thread to terminate")
+        training.close()
+
+    # Patching RL Zoo's class is what this function is for
+    cls._init_callback = _init_callback  # type: ignore[method-assign]
+    cls._on_rollout_end = _on_rollout_end  # type: ignore[method-assign]
+    cls._on_training_end = _on_training_end  # type: ignore[method-assign]
+    setattr(cls, _PATCHED_MARK, True)
+
+
 def register(module: ModuleType) -> None:
     """
     Add DACERF and DACER to one RL Zoo module (idempotent): ``rl_zoo3.utils`` (``ALGOS``), ``rl_zoo3.hyperparams_opt``
-    (Optuna samplers and converters) or ``rl_zoo3.exp_manager`` (default YAML files); other modules are left alone.
+    (Optuna samplers and converters), ``rl_zoo3.exp_manager`` (default YAML files) or ``rl_zoo3.callbacks``
+    (``ParallelTrainCallback``, see :class:`ParallelTraining`); other modules are left alone.
 
     :param module: the RL Zoo module, already executed
     """
@@ -322,15 +507,18 @@ def register(module: ModuleType) -> None:
         module.HYPERPARAMS_CONVERTER.update(CONVERTERS)
     elif module.__name__ == "rl_zoo3.exp_manager":
         _patch_experiment_manager(module.ExperimentManager)
+    elif module.__name__ == "rl_zoo3.callbacks":
+        _patch_parallel_train_callback(module.ParallelTrainCallback)
 
 
 def main() -> None:
     """``python -m sb3_dacerf.zoo <script> [args]``: run ``rl_zoo3.<script>`` (train, enjoy, ...) with DACERF and DACER."""
+    import rl_zoo3.callbacks
     import rl_zoo3.exp_manager
     import rl_zoo3.hyperparams_opt
     import rl_zoo3.utils
 
-    for module in (rl_zoo3.utils, rl_zoo3.hyperparams_opt, rl_zoo3.exp_manager):
+    for module in (rl_zoo3.utils, rl_zoo3.hyperparams_opt, rl_zoo3.exp_manager, rl_zoo3.callbacks):
         register(module)
     if len(sys.argv) < 2:
         raise SystemExit("usage: python -m sb3_dacerf.zoo <train|enjoy|record_video|...> [RL Zoo arguments]")

@@ -17,6 +17,7 @@ import yaml
 optuna = pytest.importorskip("optuna")
 pytest.importorskip("rl_zoo3")
 
+import rl_zoo3.callbacks  # noqa: E402
 import rl_zoo3.exp_manager  # noqa: E402
 import rl_zoo3.hyperparams_opt  # noqa: E402
 import rl_zoo3.utils  # noqa: E402
@@ -99,7 +100,7 @@ def test_start_up_hook_is_installed():
 
 
 def test_register_is_idempotent():
-    for module in (rl_zoo3.utils, rl_zoo3.hyperparams_opt, rl_zoo3.exp_manager):
+    for module in (rl_zoo3.utils, rl_zoo3.hyperparams_opt, rl_zoo3.exp_manager, rl_zoo3.callbacks):
         register(module)
         register(module)
     assert rl_zoo3.utils.ALGOS["dacerf"] is DACERF and rl_zoo3.utils.ALGOS["dacer"] is DACER
@@ -107,6 +108,7 @@ def test_register_is_idempotent():
     assert rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER["dacer"] is convert_dacer_params
     assert {"dacerf", "dacer"} <= set(rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER)
     assert rl_zoo3.exp_manager.ExperimentManager._sb3_dacerf_patched
+    assert rl_zoo3.callbacks.ParallelTrainCallback._sb3_dacerf_patched
 
 
 def test_default_config():
