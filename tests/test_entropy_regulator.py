@@ -126,21 +126,21 @@ def random_q_values(seed: int = 0) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
     return q_pi, q_star, q_buffer
 
 
-@pytest.mark.parametrize("method", ["gain", "td3bc", "q_scale", "flowrl"])
+@pytest.mark.parametrize("method", ["gain", "paper", "td3bc", "q_scale", "flowrl"])
 def test_lambda_f_is_proportional_to_the_langevin_gain_and_invariant_to_a_reward_shift(method):
     q_pi, q_star, q_buffer = random_q_values()
     kappa, lambda_f = actor_loss_weights(method, q_pi, q_star, q_buffer)
     gain = (q_star - q_buffer).clamp_min(0)
     order = gain.flatten().argsort()
     assert (lambda_f.flatten()[order].diff() >= -1e-12).all()  # more gain, more imitation
-    if method in ("gain", "td3bc", "q_scale"):
+    if method in ("gain", "paper", "td3bc", "q_scale"):
         assert (lambda_f[gain == 0] == 0).all()  # no imitation without a Langevin gain
         ratio = lambda_f[gain > 0] / gain[gain > 0]
         th.testing.assert_close(ratio, th.full_like(ratio, ratio[0].item()))  # λ_f ∝ gain
     # A shift of the reward by c shifts every Q by c / (1 - γ): "gain" and "flowrl" weights do not move
     shift = 1600.0
     kappa_shifted, lambda_shifted = actor_loss_weights(method, q_pi + shift, q_star + shift, q_buffer + shift)
-    if method in ("gain", "flowrl"):
+    if method in ("gain", "paper", "flowrl"):
         th.testing.assert_close(lambda_shifted, lambda_f, rtol=1e-4, atol=1e-6)
         th.testing.assert_close(kappa_shifted, kappa)
     else:  # the weightings that scale with |Q| drift with a shift
@@ -154,7 +154,18 @@ def test_gain_weighting_balance_does_not_depend_on_the_reward_scale():
     # -Q/κ and λ_f: the same loss for rewards ten times larger
     th.testing.assert_close(lambda_10, lambda_f)
     th.testing.assert_close(10 * q_pi / kappa_10, q_pi / kappa)
-    assert set(FLOW_MATCHING_WEIGHTS) == {"gain", "q_scale", "td3bc", "flowrl"}
+    assert set(FLOW_MATCHING_WEIGHTS) == {"gain", "paper", "q_scale", "td3bc", "flowrl"}
+
+
+def test_paper_weighting_is_the_gain_itself_and_its_balance_does_not_depend_on_the_reward_scale():
+    q_pi, q_star, q_buffer = random_q_values()
+    kappa, lambda_f = actor_loss_weights("paper", q_pi, q_star, q_buffer, coef=2.0)
+    # λ_f = c · ReLU(Q(s, a*) - Q(s, a_B)), by hand, and no rescaling of -Q
+    th.testing.assert_close(lambda_f, 2.0 * (q_star - q_buffer).clamp_min(0))
+    assert kappa.item() == 1.0
+    # Rewards ten times larger: -Q and λ_f both grow ten times, so the two terms keep their ratio
+    kappa_10, lambda_10 = actor_loss_weights("paper", 10 * q_pi, 10 * q_star, 10 * q_buffer, coef=2.0)
+    th.testing.assert_close(lambda_10 / (10 * q_pi / kappa_10).abs().mean(), lambda_f / (q_pi / kappa).abs().mean())
 
 
 def test_gain_weighting_stays_finite_without_any_langevin_gain():

@@ -6,7 +6,7 @@ import torch as th
 from torch.nn import functional as F
 
 #: The weightings of the two terms of the actor loss (``flow_matching_weights``), see :func:`actor_loss_weights`
-FLOW_MATCHING_WEIGHTS = ("gain", "q_scale", "td3bc", "flowrl")
+FLOW_MATCHING_WEIGHTS = ("gain", "paper", "q_scale", "td3bc", "flowrl")
 
 
 def flow_matching_loss(
@@ -49,6 +49,10 @@ def actor_loss_weights(
     - ``"gain"``: ``κ = mean(g)``. Both terms are then free of the reward's scale and shift (``-Q / κ`` has the
       gradient of ``Q`` in units of the batch's Langevin gain). ``κ`` is floored at ``1e-3`` of the batch's mean
       absolute deviation of ``Q(s, a_B)`` for batches where Langevin dynamics found no gain.
+    - ``"paper"``: ``κ = 1`` and ``λ_f = coef * g``, the paper's ``λ_f ∝ ReLU(Q(s, a*) - Q(s, a_B))`` taken literally
+      (not normalised by the batch's mean gain). ``g`` is a difference of Q-values, so the weight does not move with
+      a shift of the reward; both terms grow linearly with the reward's scale, so their balance does not move with it
+      either. The proportionality constant, which the paper does not give, is ``coef``.
     - ``"q_scale"``: ``κ = 1`` and ``λ_f = coef * mean|Q(s, π(s))| * g / mean(g)``: the imitation term grows
       with ``|Q|``, so it depends on a shift of the reward (the weighting of version 0.1.0).
     - ``"td3bc"``: TD3+BC's normalisation of the improvement term, ``κ = mean|Q(s, π(s))| / 2.5``.
@@ -69,6 +73,8 @@ def actor_loss_weights(
             q_spread = (q_values_buffer - q_values_buffer.mean()).abs().mean()
             kappa = th.maximum(mean_gain, 1e-3 * q_spread).clamp_min(1e-8)
             return kappa, coef * relative_gain
+        if method == "paper":
+            return th.ones_like(mean_gain), coef * gain
         if method == "q_scale":
             return th.ones_like(mean_gain), coef * q_values_pi.abs().mean() * relative_gain
         if method == "td3bc":

@@ -85,7 +85,8 @@ class DACERF(TwinCriticAlgorithm):
         also accepted in ``policy_kwargs``, 1 if given in neither
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
     :param flow_matching_weights: How the two terms of the actor loss are weighted: ``"gain"`` (scale- and
-        shift-free, the default), ``"q_scale"`` (``λ_f`` times ``mean|Q|``, version 0.1.0 and the paper preset),
+        shift-free, the default), ``"paper"`` (``λ_f = flow_matching_coef · ReLU(Q(s, a*) - Q(s, a_B))``, the
+        paper's weight taken literally, and the paper preset's), ``"q_scale"`` (``λ_f`` times ``mean|Q|``, version 0.1.0),
         ``"td3bc"`` or ``"flowrl"`` (see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights`)
     :param demonstration_targets: What the imitation term fits for the demonstrations of a
         :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer` (its batches say how many they hold):
