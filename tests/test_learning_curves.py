@@ -283,3 +283,22 @@ def test_regime_options_refuse_what_does_not_fit(tmp_path, learning_curves, monk
         learning_curves.main()
     assert re.search(message, capsys.readouterr().err)
     assert not (tmp_path / "x").exists()
+
+
+def test_data_regime_measures_both_axes(capsys):
+    """benchmarks/data_regime.py: S environment steps per gradient step, counted and timed apart."""
+    spec = importlib.util.spec_from_file_location("data_regime", BENCHMARKS / "data_regime.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    rows = module.main(["--quick", "--variant", "sac", "--steps-per-gradient", "1", "4"])
+    assert [(row["env_steps"], row["gradient_steps"]) for row in rows] == [(40, 40), (160, 40)]
+    for row, steps in zip(rows, (1, 4), strict=True):
+        assert row["budget_env_steps"] == pytest.approx(row["budget_gradient_steps"] * steps)
+    assert "| 4 | 160 | 40 |" in capsys.readouterr().out
+    for argv, message in (
+        (["--variant", "dacerf-utd2"], "sets ['gradient_steps'] itself"),
+        (["--steps-per-gradient", "2.5"], "whole"),
+    ):
+        with pytest.raises(SystemExit):
+            module.main(["--quick", *argv])
+        assert message in capsys.readouterr().err
