@@ -480,7 +480,7 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path, x_axis: str = "en
     figure.suptitle(f"{env_id}: deterministic evaluation\nmean and 95% bootstrap CI over seeds", fontsize=10)
     figure.tight_layout()
     stem = env_id.replace("/", "_")
-    figure.savefig(out / (f"{stem}.png" if x_axis == "env_steps" else f"{stem}-{x_axis}.png"), dpi=110)
+    figure.savefig(out / plot_name(env_id, x_axis), dpi=110)
     frame.to_csv(out / f"{stem}.csv", index=False)
     return "\n".join(lines)
 
