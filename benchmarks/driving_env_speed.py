@@ -18,11 +18,23 @@ timing ``env.step`` only (resets are not timed), in CPU time of the process by d
   (collision or centre off the road). The zero action drives the ego exactly as ours does (zero
   acceleration and steering), so with the same seeds its episodes are step for step ours: this is the
   bare simulation, and ``overhead = t_step(ours) / t_step(no layer) - 1`` is the full cost of our
-  observation / action / reward / info layer. That is the overhead that must stay under 15%.
+  observation / action / reward / info layer.
+- ``ours, highway-env's simulation classes``: our environment with ``fast_simulation=False``: highway-env's own
+  ``Road`` / ``RegulatedRoad``, ``RoadNetwork`` and ``IDMVehicle`` instead of the faster classes of
+  ``sb3_dacerf.envs.driving.common.simulation``, which give the same traffic (the same episodes for the same seeds):
+  ``speed-up = t_step(that) / t_step(ours)``.
+
+``--profile`` prints instead where the steps spend their time (cProfile, both simulations, the functions that
+dominate highway-env's). ``--scripted`` checks instead that the two simulations drive the same episodes: the scripted drivers
+(``ScriptedDriver`` on both scenarios, ``JunctionDriver`` at the intersection) on 50 unseen seeds (10,000-10,049), each
+with both simulations, printing the arrival and collision rates and how many episodes differ in any observation,
+reward or flag.
 
 Usage::
 
     python benchmarks/driving_env_speed.py [--steps 100] [--rounds 15] [--density normal] [--quick]
+    python benchmarks/driving_env_speed.py --scripted [--density normal] [--seeds 50]
+    python benchmarks/driving_env_speed.py --profile --steps 600 [--density normal]
 
 On a shared machine the load average (printed) moves all numbers; the ratios, measured interleaved, move less.
 """
@@ -36,6 +48,7 @@ import time
 import gymnasium as gym
 import highway_env  # noqa: F401  (registers highway-v0 / intersection-v0)
 import numpy as np
+import torch
 from highway_env.envs.common.abstract import AbstractEnv
 
 from sb3_dacerf.envs.driving.intersection import IntersectionEnv
@@ -129,6 +142,115 @@ def time_steps(env: gym.Env, steps: int, seed: int, clock=time.process_time) -> 
     return elapsed
 
 
+def scripted_episodes(env: gym.Env, driver_class: type, seeds: range) -> tuple[list[tuple[bool, bool]], list[list]]:
+    """
+    :param env: a driving environment
+    :param driver_class: ``ScriptedDriver`` or ``JunctionDriver``
+    :param seeds: the reset seed of each episode
+    :return: each episode's (arrived, collided), and its trace (observations, rewards and flags of every step)
+    """
+    outcomes, traces = [], []
+    driver = driver_class(env)
+    for seed in seeds:
+        obs, _ = env.reset(seed=seed)
+        trace: list = [obs]
+        terminated = truncated = False
+        info: dict = {}
+        while not (terminated or truncated):
+            obs, reward, terminated, truncated, info = env.step(driver(obs))
+            trace.append((obs, reward, terminated, truncated))
+        outcomes.append((bool(info["is_success"]), bool(info["crashed"])))
+        traces.append(trace)
+    return outcomes, traces
+
+
+def same_trace(a: list, b: list) -> bool:
+    """Whether two episode traces (see :func:`scripted_episodes`) are equal step for step."""
+    return len(a) == len(b) and all(
+        all(np.array_equal(x, y) for x, y in zip(step_a, step_b, strict=True))
+        if isinstance(step_a, tuple)
+        else np.array_equal(step_a, step_b)
+        for step_a, step_b in zip(a, b, strict=True)
+    )
+
+
+def check_scripted(density: str, n_seeds: int) -> None:
+    """Print the scripted drivers' arrival / collision rates with both simulations on seeds 10,000 onwards."""
+    from sb3_dacerf.envs.driving.scripted import JunctionDriver, ScriptedDriver
+
+    seeds = range(10_000, 10_000 + n_seeds)
+    print(f"density={density}, seeds {seeds.start}-{seeds.stop - 1}\n")
+    print("| scenario | driver | simulation | arrival | collision | episodes that differ |")
+    print("|---|---|---|---|---|---|")
+    for scenario, env_class, drivers in (
+        ("multilane", MultilaneEnv, (ScriptedDriver,)),
+        ("intersection", IntersectionEnv, (ScriptedDriver, JunctionDriver)),
+    ):
+        for driver_class in drivers:
+            results = {
+                fast: scripted_episodes(env_class(density=density, config={"fast_simulation": fast}), driver_class, seeds)
+                for fast in (False, True)
+            }
+            differ = sum(not same_trace(a, b) for a, b in zip(results[False][1], results[True][1], strict=True))
+            for fast, (outcomes, _) in results.items():
+                arrival, collision = np.mean(outcomes, axis=0)
+                name = "fast (default)" if fast else "highway-env's classes"
+                cells = [scenario, driver_class.__name__, name, f"{arrival:.0%}", f"{collision:.0%}", f"{differ} of {len(seeds)}"]
+                print(f"| {' | '.join(cells)} |")
+
+
+PROFILED = {
+    "Road.act (traffic decisions: IDM, MOBIL)": ("act", ("road.py", "simulation.py")),
+    "Road.neighbour_vehicles": ("neighbour_vehicles", ("road.py", "simulation.py")),
+    "Road.step (moves, collisions)": ("step", ("road.py", "regulation.py", "simulation.py")),
+    "RegulatedRoad.enforce_road_rules": ("enforce_road_rules", ("regulation.py", "simulation.py")),
+    "copy.deepcopy": ("deepcopy", ("copy.py",)),
+    "RoadNetwork.get_closest_lane_index": ("get_closest_lane_index", ("road.py", "simulation.py")),
+    "np.clip": ("clip", ("fromnumeric.py",)),
+    "observe_scene (our observation)": ("observe_scene", ("observation.py",)),
+}
+"""Rows of the profile table: (function name, files it may be defined in); overrides and the functions they call
+share a name, so the largest cumulative time among the matches is the one shown."""
+
+
+def profile(steps: int, density: str) -> None:
+    """Print where ``steps`` steps of each scenario spend their time under cProfile, with both simulations."""
+    import cProfile
+    import pstats
+
+    print(f"density={density}, {steps} steps per scenario and simulation, zero action, cProfile (cumulative CPU seconds)\n")
+    columns, tables = [], {}
+    for scenario, env_class in (("multilane", MultilaneEnv), ("intersection", IntersectionEnv)):
+        for fast in (False, True):
+            env = env_class(density=density, config={"fast_simulation": fast})
+            env.reset(seed=0)
+            profiler = cProfile.Profile(time.process_time)  # CPU time: other processes move it far less
+            profiler.enable()
+            time_steps(env, steps, seed=0)
+            profiler.disable()
+            stats = pstats.Stats(profiler).stats  # type: ignore[attr-defined]
+            simulation = "fast" if fast else "highway-env's classes"
+            column = f"{scenario}, {simulation}"
+            columns.append(column)
+            env_step = [
+                cumulative
+                for (path, _, name), (_, _, _, cumulative, _) in stats.items()
+                if name == "step" and path.endswith(("abstract.py", "intersection.py"))
+            ]
+            tables[column] = {"env.step": max(env_step)}
+            for row, (function, files) in PROFILED.items():
+                times = [
+                    cumulative
+                    for (path, _, name), (_, _, _, cumulative, _) in stats.items()
+                    if name == function and path.endswith(files)
+                ]
+                tables[column][row] = max(times, default=0.0)
+    print(f"| function | {' | '.join(columns)} |")
+    print(f"|---|{'---|' * len(columns)}")
+    for row in ["env.step", *PROFILED]:
+        print(f"| {row} | {' | '.join(f'{tables[column][row]:.2f}' for column in columns)} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=100, help="steps per environment and round")
@@ -142,7 +264,17 @@ def main() -> None:
         "than wall-clock time; wall: time.perf_counter",
     )
     parser.add_argument("--quick", action="store_true", help="a short check: 50 steps x 4 rounds")
+    parser.add_argument("--scripted", action="store_true", help="compare the scripted drivers' episodes on both simulations")
+    parser.add_argument("--seeds", type=int, default=50, help="with --scripted: episodes per driver and simulation")
+    parser.add_argument("--profile", action="store_true", help="profile --steps steps (600 or more) of each scenario")
     args = parser.parse_args()
+    torch.set_num_threads(1)
+    if args.profile:
+        profile(args.steps, args.density)
+        return
+    if args.scripted:
+        check_scripted(args.density, 5 if args.quick else args.seeds)
+        return
     if args.quick:
         args.steps, args.rounds = 50, 4
 
@@ -153,12 +285,18 @@ def main() -> None:
             "same traffic, highway-env layer": lambda: with_layer(StockLayer, MultilaneEnv)(density=args.density),
             "same traffic, no layer": lambda: with_layer(NoLayer, MultilaneEnv)(density=args.density),
             "ours (DACERF-Multilane-v0)": lambda: MultilaneEnv(density=args.density),
+            "ours, highway-env's simulation classes": lambda: MultilaneEnv(
+                density=args.density, config={"fast_simulation": False}
+            ),
         },
         "intersection": {
             "highway-env default (intersection-v0)": lambda: gym.make("intersection-v0", config=stock_config),
             "same traffic, highway-env layer": lambda: with_layer(StockLayer, IntersectionEnv)(density=args.density),
             "same traffic, no layer": lambda: with_layer(NoLayer, IntersectionEnv)(density=args.density),
             "ours (DACERF-Intersection-v0)": lambda: IntersectionEnv(density=args.density),
+            "ours, highway-env's simulation classes": lambda: IntersectionEnv(
+                density=args.density, config={"fast_simulation": False}
+            ),
         },
     }
     clock = time.process_time if args.clock == "cpu" else time.perf_counter
@@ -186,10 +324,17 @@ def main() -> None:
             print(f"  {name:40s} {total_steps / elapsed[scenario, name]:8.1f} steps/s")
         names = list(makers)
         ours, stock_layer, bare = elapsed[scenario, names[3]], elapsed[scenario, names[1]], elapsed[scenario, names[2]]
-        print(f"  our layer's overhead over the bare simulation: {ours / bare - 1:+.1%} (must be < +15%)")
+        print(
+            f"  our layer's overhead over the bare simulation: {ours / bare - 1:+.1%}, "
+            f"{(ours - bare) / total_steps * 1e3:.2f} ms per step"
+        )
         ratios = per_round[scenario, names[3]] / per_round[scenario, names[2]] - 1
         print(f"    per round: median {np.median(ratios):+.1%}, range [{ratios.min():+.1%}, {ratios.max():+.1%}]")
         print(f"  ours vs the same traffic under highway-env's layer: {ours / stock_layer - 1:+.1%}")
+        stock_simulation = elapsed[scenario, names[4]]
+        speedups = per_round[scenario, names[4]] / per_round[scenario, names[3]]
+        print(f"  speed-up of the fast simulation (ours vs highway-env's classes): {stock_simulation / ours:.2f}x")
+        print(f"    per round: median {np.median(speedups):.2f}x, range [{speedups.min():.2f}x, {speedups.max():.2f}x]")
 
 
 if __name__ == "__main__":

@@ -18,6 +18,9 @@ Environment ids registered by ``sb3_dacerf`` (driving, DMC) work too; for enviro
 ``is_success`` / ``collision`` / ``off_road`` the arrival, collision and off-road rates of the evaluation
 episodes are reported as well. ``--env-kwargs`` go to ``gym.make`` of every env, ``--train-env-kwargs`` to the
 training env's only (a training aid such as the intersection's exploring starts, with evaluations left as they are).
+``--env-kwargs '{"density": "random"}'`` draws each driving episode's traffic density (training and evaluations),
+``--train-env-kwargs`` the training episodes' only; ``--vec-normalize masked`` normalises the observations with
+:class:`sb3_dacerf.common.vec_normalize.MaskedVecNormalize`, whose empty vehicle rows stay zeros at any density.
 
 ``--n-envs N`` trains on N copies of the environment stepped together (SB3's ``DummyVecEnv``, in the same process):
 each rollout step collects N transitions and is followed by the variant's gradient steps (one by default), so a run
@@ -249,8 +252,10 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     """
     A fresh model of one variant on its training environment: ``job["n_envs"]`` copies (default 1) in a
     ``DummyVecEnv`` (``SubprocVecEnv`` with ``job["vec_env"] == "subproc"``), VecNormalize'd with
-    ``job["vec_normalize"]``, rewards too with ``job["normalize_reward"]``; ``job["steps_per_gradient"]`` sets
-    ``train_freq`` and ``gradient_steps`` (``sb3_dacerf.common.regime.steps_per_gradient_kwargs``).
+    ``job["vec_normalize"]`` (``True`` or ``"plain"``: SB3's; ``"masked"``:
+    :class:`~sb3_dacerf.common.vec_normalize.MaskedVecNormalize` over a driving scenario's vehicle rows), rewards too
+    with ``job["normalize_reward"]``; ``job["steps_per_gradient"]`` sets ``train_freq`` and ``gradient_steps``
+    (``sb3_dacerf.common.regime.steps_per_gradient_kwargs``).
     """
     import gymnasium as gym
     from stable_baselines3.common.noise import NormalActionNoise
@@ -266,8 +271,14 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
         env = SubprocVecEnv([lambda: gym.make(env_id, **env_kwargs)] * n_envs)
     else:
         env = DummyVecEnv([lambda: gym.make(job["env"], **env_kwargs)] * n_envs)
-    if job["vec_normalize"] or job.get("normalize_reward"):
-        env = VecNormalize(env, norm_obs=True, norm_reward=bool(job.get("normalize_reward")))
+    norm_reward = bool(job.get("normalize_reward"))
+    if job["vec_normalize"] == "masked":
+        from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
+        from sb3_dacerf.envs.driving.common.observation import vehicle_rows
+
+        env = MaskedVecNormalize(env, rows=vehicle_rows(env.get_attr("config")[0]), norm_obs=True, norm_reward=norm_reward)
+    elif job["vec_normalize"] or norm_reward:
+        env = VecNormalize(env, norm_obs=True, norm_reward=norm_reward)
     kwargs = dict(kwargs)
     if job.get("steps_per_gradient") is not None:
         kwargs.update(steps_per_gradient_kwargs(job["steps_per_gradient"], n_envs))
@@ -336,7 +347,8 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     else:
         model = new_model(job, algorithm, kwargs)
         if job.get("demonstrations"):
-            from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS, add_scripted_transitions
+            from sb3_dacerf.common.demonstrations import add_scripted_transitions
+            from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
 
             add_scripted_transitions(model, job["demonstrations"], driver=DEMONSTRATORS[job.get("demonstrator", "scripted")])
     resumed_at = model.num_timesteps
@@ -602,8 +614,12 @@ def main() -> None:
     )
     parser.add_argument(
         "--vec-normalize",
-        action="store_true",
-        help="normalise observations with VecNormalize(norm_obs=True, norm_reward=False), statistics saved in the checkpoints",
+        nargs="?",
+        const="plain",
+        choices=["plain", "masked"],
+        help="normalise observations with VecNormalize(norm_obs=True, norm_reward=False), statistics saved in the "
+        "checkpoints; 'masked' (driving scenarios): sb3_dacerf.common.vec_normalize.MaskedVecNormalize, whose empty "
+        'vehicle rows stay zeros at any traffic density (e.g. with --env-kwargs \'{"density": "random"}\')',
     )
     parser.add_argument(
         "--normalize-reward",
@@ -647,6 +663,11 @@ def main() -> None:
     if args.demonstrations < 0:
         parser.error(f"--demonstrations must be at least 0, got {args.demonstrations}")
 
+    if args.vec_normalize == "masked" and args.env not in DRIVING_ENV_IDS:
+        parser.error(
+            f"--vec-normalize masked normalises the vehicle rows of a driving scenario ({', '.join(DRIVING_ENV_IDS)}); "
+            f"{args.env} has none: pass --vec-normalize alone"
+        )
     if args.demonstrations and args.env not in DRIVING_ENV_IDS:
         parser.error(
             f"--demonstrations needs a driving scenario ({', '.join(DRIVING_ENV_IDS)}), whose scripted driver gives "

@@ -7,6 +7,15 @@ collision and off-road rates and mean episode length over N seeded, deterministi
     python examples/evaluate_driving.py --scripted --env multilane --episodes 50   # the scripted reference driver
     python examples/evaluate_driving.py --scripted junction --env intersection --episodes 50   # its demonstrator
     python examples/evaluate_driving.py --idle --env intersection --episodes 50    # zero increments: the floor
+    python examples/evaluate_driving.py examples/models/dacerf_multilane --density all --episodes 50   # one table
+
+``--density all`` evaluates at each traffic density on the same seeds and prints one markdown table (TAR, arrival,
+collision and off-road rates per density); ``--density`` also takes one density, ``random``, a comma-separated
+list (``sparse,normal``) or a JSON dict of weights (``'{"sparse": 1, "dense": 3}'``) to draw one per episode.
+``--zero-empty-rows`` gives the empty vehicle rows of the observation zeros after SB3's ``VecNormalize`` (the mean
+of its statistics) instead of the values the statistics give them: a driver whose training saw every vehicle row
+filled (the multi-lane driver of ``examples/models/``, trained in normal traffic) then drives in sparse traffic;
+drivers trained with ``sb3_dacerf.common.vec_normalize.MaskedVecNormalize`` need nothing of the kind.
 
 A model saved by ``examples/train_driving.py --save NAME`` comes with ``NAME_<scenario>.json`` (env id, density,
 config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario>_vecnormalize.pkl``: both are
@@ -35,6 +44,7 @@ import numpy as np
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
+from sb3_dacerf.envs.driving.density import DENSITIES, DensitySpec, density_weights
 
 SCENARIOS = {"multilane": "DACERF-Multilane-v0", "intersection": "DACERF-Intersection-v0"}
 
@@ -46,32 +56,88 @@ class Driver:
     model: Any
     env: gym.Env
     env_id: str
-    density: str
+    density: DensitySpec
     config: dict
     vec_normalize: Any  # VecNormalize (training=False) or None
     stats_path: str | None
     path: str
+    empty_rows: tuple[int, int, int] | None = None
+    """With ``zero_empty_rows``: the vehicle rows (``vehicle_rows``) whose empty ones are given zeros."""
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """The deterministic action for a raw (not normalised) observation."""
-        return deterministic_action(self.model, self.vec_normalize, obs)
+        return deterministic_action(self.model, self.vec_normalize, obs, self.empty_rows)
 
 
-def deterministic_action(model, vec_normalize, obs: np.ndarray) -> np.ndarray:
-    """A model's deterministic action for a raw observation, normalised first with ``vec_normalize`` if not None."""
+def deterministic_action(model, vec_normalize, obs: np.ndarray, empty_rows: tuple[int, int, int] | None = None) -> np.ndarray:
+    """
+    A model's deterministic action for a raw observation, normalised first with ``vec_normalize`` if not None.
+
+    :param empty_rows: ``(start, count, size)`` of a table of rows whose last entry is a mask: the normalised
+        observation's rows with mask 0 in ``obs`` are set to zeros (see ``--zero-empty-rows``)
+    """
     if vec_normalize is not None:
-        obs = vec_normalize.normalize_obs(obs)
+        normalized = vec_normalize.normalize_obs(obs)
+        if empty_rows is not None:
+            start, count, size = empty_rows
+            empty = np.asarray(obs)[start : start + count * size].reshape(count, size)[:, -1] <= 0.5
+            normalized[start : start + count * size].reshape(count, size)[empty] = 0.0
+        obs = normalized
     return model.predict(obs, deterministic=True)[0]
 
 
-def policy_act(model, vec_normalize=None) -> Callable[[np.ndarray], np.ndarray]:
+def policy_act(model, vec_normalize=None, empty_rows: tuple[int, int, int] | None = None) -> Callable[[np.ndarray], np.ndarray]:
     """
     The deterministic driving function of an SB3 model: raw observation in, action out.
 
     :param model: a trained SB3 model
     :param vec_normalize: the ``VecNormalize`` whose observation statistics the model was trained with, if any
+    :param empty_rows: the rows whose empty ones get zeros after normalisation (``deterministic_action``)
     """
-    return functools.partial(deterministic_action, model, vec_normalize)
+    return functools.partial(deterministic_action, model, vec_normalize, empty_rows=empty_rows)
+
+
+def parse_density(text: str) -> DensitySpec:
+    """
+    A ``--density`` value: a density, ``random``, ``all`` (``evaluate_driving.py``: each in turn), a comma-separated
+    list of densities or a JSON dict of weights, checked as ``gym.make`` checks it.
+
+    :raises argparse.ArgumentTypeError: a value ``gym.make`` would refuse, with its message
+    """
+    if text == "all":
+        return text
+    density: DensitySpec = text
+    if text.lstrip().startswith("{"):
+        try:
+            density = json.loads(text)
+        except json.JSONDecodeError as error:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a JSON dict of weights ({error})") from None
+    elif "," in text:
+        density = [name.strip() for name in text.split(",")]
+    try:
+        density_weights(density)
+    except (TypeError, ValueError) as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return density
+
+
+def format_density_table(results: dict[str, dict[str, Any]]) -> str:
+    """
+    One markdown table of ``evaluate`` results by density.
+
+    :param results: ``{density: evaluate(...)}``
+    """
+    lines = [
+        "| density | TAR | arrival | collision | off road | mean length | distance to the reference path | speed error |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for density, r in results.items():
+        lines.append(
+            f"| {density} | {r['tar']:,.0f} | {r['arrival_rate']:.0%} | {r['collision_rate']:.0%} | "
+            f"{r['off_road_rate']:.0%} | {r['episode_length']:.0f} steps | {r['lateral_error']:.2f} m | "
+            f"{r['speed_error']:.2f} m/s |"
+        )
+    return "\n".join(lines)
 
 
 def model_paths(model_path: str) -> dict[str, str]:
@@ -163,6 +229,7 @@ def load_driver(
     config: dict | None = None,
     force: bool = False,
     render_mode: str | None = None,
+    zero_empty_rows: bool | None = None,
 ) -> Driver:
     """
     Load a saved driver with what was saved beside it (see ``model_paths``), and make its environment.
@@ -176,10 +243,13 @@ def load_driver(
     :param scenario: ``multilane``, ``intersection`` or an env id
     :param algo: ``dacerf`` or ``sac``
     :param vec_normalize: path of VecNormalize statistics saved with ``VecNormalize.save``
-    :param density: ``sparse``, ``normal`` or ``dense``
+    :param density: ``sparse``, ``normal``, ``dense``, or a distribution to draw one per episode (``random``, a list,
+        a dict of weights)
     :param config: env config overrides
     :param force: allow another scenario than the one the model was trained on
     :param render_mode: of the environment, e.g. ``"rgb_array"``
+    :param zero_empty_rows: give the empty vehicle rows zeros after normalisation (``--zero-empty-rows``); default:
+        the metadata's ``zero_empty_rows``, else ``False``
     """
     paths = model_paths(model_path)
     if not os.path.isfile(paths["model"]):
@@ -234,7 +304,30 @@ def load_driver(
         normalizer.training = False
         if normalizer.observation_space.shape != env.observation_space.shape:
             sys.exit(f"error: the statistics in {stats!r} are for observations of another shape: pass the model's own .pkl")
-    return Driver(model, env, env_id, density, config, normalizer, stats, paths["model"])
+    if zero_empty_rows is None:
+        zero_empty_rows = bool(metadata.get("zero_empty_rows", False))
+    empty_rows = None
+    if zero_empty_rows:
+        if normalizer is None:
+            sys.exit(f"error: --zero-empty-rows changes normalised observations, and {paths['model']!r} has no statistics")
+        from sb3_dacerf.envs.driving.common.observation import vehicle_rows
+
+        empty_rows = vehicle_rows(env.unwrapped.config)
+    return Driver(model, env, env_id, density, config, normalizer, stats, paths["model"], empty_rows)
+
+
+def baseline_driver(kind: str, env: gym.Env) -> Callable[[np.ndarray], np.ndarray]:
+    """A scripted driver (``scripted``, ``junction``) or zero increments (``idle``) of one env."""
+    if kind == "idle":
+        unwrapped = env.unwrapped
+
+        def act(obs: np.ndarray) -> np.ndarray:
+            return unwrapped.action_type.to_action(np.zeros(2)).astype(np.float32)
+
+        return act
+    from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
+
+    return DEMONSTRATORS[kind](env)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -257,7 +350,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--env", choices=list(SCENARIOS), help="scenario (default: the one the model was trained on)")
     parser.add_argument("--algo", choices=["dacerf", "sac"], help="model class (default: from the metadata, else dacerf)")
     parser.add_argument("--vec-normalize", help="VecNormalize statistics .pkl (default: the one saved beside the model)")
-    parser.add_argument("--density", choices=["sparse", "normal", "dense"], help="traffic density (default: as trained)")
+    parser.add_argument(
+        "--density",
+        type=parse_density,
+        help="traffic density (default: as trained): sparse, normal, dense, 'all' (each in turn on the same seeds, one "
+        "table), or one drawn per episode: random, a list 'sparse,normal' or a JSON dict of weights",
+    )
+    parser.add_argument(
+        "--zero-empty-rows",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="give the empty vehicle rows zeros after normalisation (for drivers whose training saw every row filled; "
+        "default: the metadata's zero_empty_rows; --no-zero-empty-rows turns it off)",
+    )
     parser.add_argument("--config", type=json.loads, help="env config overrides as JSON, e.g. '{\"duration\": 20}'")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
@@ -266,40 +371,50 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     if args.scripted and args.idle:
         parser.error("--scripted and --idle are two baselines: pass one of them")
+    densities = DENSITIES if args.density == "all" else (args.density,)
+    seeds = f"seeds {args.seed}-{args.seed + args.episodes - 1}"
     if args.scripted or args.idle:
         name = "--scripted" if args.scripted else "--idle"
         if args.model or not args.env:
             parser.error(f"{name} evaluates a baseline driver: pass --env multilane or --env intersection and no model")
-        env_id, density = SCENARIOS[args.env], args.density or "normal"
+        if args.zero_empty_rows:
+            parser.error("--zero-empty-rows changes a model's normalised observations: leave it out with --scripted / --idle")
         if args.scripted == "junction" and args.env != "intersection":
             parser.error("--scripted junction drives the intersection: pass --env intersection (or plain --scripted)")
-        env = gym.make(env_id, density=density, config=args.config or {})
-        if args.scripted:
-            from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
-
-            act: Callable[[np.ndarray], np.ndarray] = DEMONSTRATORS[args.scripted](env)
-        else:
-            unwrapped = env.unwrapped
-
-            def act(obs: np.ndarray) -> np.ndarray:
-                return unwrapped.action_type.to_action(np.zeros(2)).astype(np.float32)
-
-        label = type(act).__name__ if args.scripted else "Zero increments"
-        print(f"{label}; {env_id} ({density}), seeds {args.seed}-{args.seed + args.episodes - 1}")
-        results = evaluate(act, env, args.episodes, args.seed)
-        print(format_results(env_id, results, args.episodes))
-        return results
+        env_id, kind = SCENARIOS[args.env], args.scripted or "idle"
+        label = "Zero increments" if kind == "idle" else {"scripted": "ScriptedDriver", "junction": "JunctionDriver"}[kind]
+        by_density = {}
+        for density in densities:
+            density = density or "normal"
+            env = gym.make(env_id, density=density, config=args.config or {})
+            print(f"{label}; {env_id} ({density}), {seeds}")
+            results = evaluate(baseline_driver(kind, env), env, args.episodes, args.seed)
+            if args.density != "all":
+                print(format_results(env_id, results, args.episodes))
+                return results
+            by_density[density] = results
+        print(format_density_table(by_density))
+        return by_density
     if not args.model:
         parser.error("pass a model .zip to evaluate (or --scripted / --idle --env SCENARIO for a baseline driver)")
-    driver = load_driver(args.model, args.env, args.algo, args.vec_normalize, args.density, args.config, args.force)
-    print(
-        f"{type(driver.model).__name__} from {driver.path}"
-        + (f", observations normalised with {driver.stats_path}" if driver.stats_path else "")
-        + f"; {driver.env_id} ({driver.density}), seeds {args.seed}-{args.seed + args.episodes - 1}, deterministic actions"
-    )
-    results = evaluate(driver.act, driver.env, args.episodes, args.seed)
-    print(format_results(driver.env_id, results, args.episodes))
-    return results
+    by_density = {}
+    for density in densities:
+        driver = load_driver(
+            args.model, args.env, args.algo, args.vec_normalize, density, args.config, args.force, None, args.zero_empty_rows
+        )
+        print(
+            f"{type(driver.model).__name__} from {driver.path}"
+            + (f", observations normalised with {driver.stats_path}" if driver.stats_path else "")
+            + (", empty vehicle rows zeroed" if driver.empty_rows else "")
+            + f"; {driver.env_id} ({driver.density}), {seeds}, deterministic actions"
+        )
+        results = evaluate(driver.act, driver.env, args.episodes, args.seed)
+        if args.density != "all":
+            print(format_results(driver.env_id, results, args.episodes))
+            return results
+        by_density[str(density)] = results
+    print(format_density_table(by_density))
+    return by_density
 
 
 if __name__ == "__main__":

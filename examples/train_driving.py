@@ -8,10 +8,16 @@ time limit reached safely on the highway), collision and off-road rates.
     python examples/train_driving.py --env multilane --timesteps 100000 --n-envs 2 --vec-normalize --save runs/dacerf
     python examples/train_driving.py --env multilane --timesteps 100000 --vec-normalize --demonstrations 10000 \
         --demonstration-fraction 0.5 --config '{"reference_speed_follows_traffic": true}'  # the shipped multilane driver
+    python examples/train_driving.py --env multilane --density random --vec-normalize masked --timesteps 100000  # all densities
     python examples/train_driving.py --env intersection --timesteps 100000 --vec-normalize --demonstrations 10000 \
         --demonstration-fraction 0.5 --demonstration-targets actions               # the shipped intersection driver
     python examples/train_driving.py --load runs/dacerf_multilane --timesteps 50000 --save runs/dacerf   # resume
     python examples/evaluate_driving.py runs/dacerf_multilane.zip --episodes 50                        # evaluate
+
+``--density random`` (or ``sparse,normal``, or a JSON dict of weights) draws each training episode's traffic density
+from its reset seed, and the final evaluation's too; ``--vec-normalize masked`` normalises the observations with
+``sb3_dacerf.common.vec_normalize.MaskedVecNormalize``, whose empty vehicle rows stay zeros whatever the number of
+vehicles (``--vec-normalize`` alone: SB3's ``VecNormalize``, with which the drivers of ``examples/models/`` trained).
 
 ``--save NAME`` writes ``NAME_<scenario>.zip`` (the model), ``NAME_<scenario>.json`` (env id, density, config,
 algorithm: what ``evaluate_driving.py`` and ``--load`` read), ``NAME_<scenario>_vecnormalize.pkl`` with
@@ -53,12 +59,15 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
+from sb3_dacerf.common.demonstrations import add_scripted_transitions
 from sb3_dacerf.common.regime import steps_per_gradient_kwargs
+from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
-from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS, add_scripted_transitions
+from sb3_dacerf.envs.driving.common.observation import vehicle_rows
+from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths, policy_act
+from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths, parse_density, policy_act
 
 
 class DrivingProgress(BaseCallback):
@@ -106,7 +115,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--algo", choices=["dacerf", "sac"], help="default: dacerf (with --load: the saved model's)")
     parser.add_argument("--timesteps", type=int, default=20_000, help="training steps per scenario (more steps with --load)")
     parser.add_argument("--eval-episodes", type=int, default=10)
-    parser.add_argument("--density", default="normal", choices=["sparse", "normal", "dense"])
+    parser.add_argument(
+        "--density",
+        type=parse_density,
+        default="normal",
+        help="traffic density: sparse, normal, dense, or one drawn per episode from its reset seed: random (the three "
+        "alike), a list 'sparse,normal' or a JSON dict of weights '{\"sparse\": 1, \"dense\": 2}'",
+    )
     parser.add_argument("--config", type=json.loads, default={}, help="env config overrides as JSON, e.g. '{\"duration\": 20}'")
     parser.add_argument("--learning-starts", type=int, default=1_000, help="random steps before the first update")
     parser.add_argument("--batch-size", type=int, help="replay batch size (default: the algorithm's, 256; the paper's 512)")
@@ -129,13 +144,20 @@ def build_parser() -> argparse.ArgumentParser:
         "paper's sample batch size, 200), or 1/G for G gradient steps per transition; sets train_freq and "
         "gradient_steps (default: one gradient step per step of the --n-envs envs; with --load, the saved model's)",
     )
-    parser.add_argument("--vec-normalize", action="store_true", help="normalise observations with VecNormalize (rewards kept)")
+    parser.add_argument(
+        "--vec-normalize",
+        nargs="?",
+        const="plain",
+        choices=["plain", "masked"],
+        help="normalise observations (rewards kept): with SB3's VecNormalize, or 'masked': with "
+        "sb3_dacerf.common.vec_normalize.MaskedVecNormalize, whose empty vehicle rows stay zeros at any density",
+    )
     parser.add_argument(
         "--demonstrations",
         type=int,
         default=0,
         help="put that many transitions of the scripted driver in a new model's replay buffer before it trains "
-        "(sb3_dacerf.envs.driving.scripted.add_scripted_transitions; not counted in --timesteps; needs --n-envs 1)",
+        "(sb3_dacerf.common.demonstrations.add_scripted_transitions; not counted in --timesteps; needs --n-envs 1)",
     )
     parser.add_argument(
         "--demonstration-fraction",
@@ -196,7 +218,7 @@ def resume_settings(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     args.algo = args.algo or metadata.get("algo")
     args.env = trained or args.env
     args.density, args.config = metadata.get("density", args.density), {**metadata.get("config", {}), **args.config}
-    args.vec_normalize = args.vec_normalize or os.path.isfile(load_paths["vec_normalize"])
+    args.vec_normalize = args.vec_normalize or ("plain" if os.path.isfile(load_paths["vec_normalize"]) else None)
     return load_paths
 
 
@@ -204,6 +226,11 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
     """Refuse settings that cannot work, with argparse's usage message and exit status 2."""
     if args.n_envs < 1:
         parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
+    if args.density == "all":
+        parser.error(
+            "--density all evaluates at each density in turn (evaluate_driving.py): to train on all of them, "
+            "pass --density random, which draws one per episode"
+        )
     if args.demonstrations < 0:
         parser.error(f"--demonstrations must be >= 0, got {args.demonstrations}")
     if args.demonstration_fraction is not None and not (args.demonstrations and 0 <= args.demonstration_fraction <= 1):
@@ -278,6 +305,9 @@ def main(argv: list[str] | None = None) -> None:
         )
         if load_paths and os.path.isfile(load_paths["vec_normalize"]):
             env = VecNormalize.load(load_paths["vec_normalize"], env)
+        elif args.vec_normalize == "masked":
+            rows = vehicle_rows(env.get_attr("config")[0])
+            env = MaskedVecNormalize(env, rows=rows, norm_obs=True, norm_reward=False)
         elif args.vec_normalize:
             env = VecNormalize(env, norm_obs=True, norm_reward=False)
         if load_paths:
@@ -295,6 +325,7 @@ def main(argv: list[str] | None = None) -> None:
         print(
             f"{env_id} ({args.density}), {args.algo}, training {args.timesteps} steps on {args.n_envs} env(s)"
             + (", observations normalised" if isinstance(env, VecNormalize) else "")
+            + (" (MaskedVecNormalize)" if isinstance(env, MaskedVecNormalize) else "")
             + f", {model.gradient_steps} gradient step(s) every {model.train_freq.frequency * args.n_envs} steps",
             flush=True,
         )

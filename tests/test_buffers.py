@@ -54,7 +54,7 @@ def test_scripted_demonstrations_go_to_their_part_and_survive_save_and_load(tmp_
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     from sb3_dacerf import DACERF
-    from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
+    from sb3_dacerf.common.demonstrations import add_scripted_transitions
 
     env_fn = lambda: gym.make("DACERF-Intersection-v0", config={"duration": 5})  # noqa: E731
     vec_env = VecNormalize(DummyVecEnv([env_fn]), norm_reward=False)

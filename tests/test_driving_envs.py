@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("highway_env")
 
-import sb3_dacerf  # noqa: F401  (registers the ids)
+import sb3_dacerf  # registers the ids
 from sb3_dacerf.envs.driving.common import (
     EGO_FEATURES,
     REWARD_TERMS,
@@ -374,6 +374,60 @@ def test_demonstrator_names_are_the_drivers_names():
     assert DEMONSTRATORS == {"scripted": ScriptedDriver, "junction": JunctionDriver}
 
 
+def module_imports(path) -> set[str]:
+    """The modules a source file imports, except inside a module-level ``__getattr__`` (deprecated aliases)."""
+    import ast
+
+    tree = ast.parse(open(path).read())
+    aliases = [node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == "__getattr__"]
+    skipped = {id(node) for alias in aliases for node in ast.walk(alias)}
+    imported = set()
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        if isinstance(node, ast.Import):
+            imported.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            imported.add(node.module)
+    return imported
+
+
+def test_environments_import_nothing_from_the_algorithms():
+    from pathlib import Path
+
+    root = Path(sb3_dacerf.__file__).parent
+    for path in sorted((root / "envs").rglob("*.py")):
+        algorithm_layer = {
+            name
+            for name in module_imports(path)
+            if name.startswith(("sb3_dacerf.common", "sb3_dacerf.dacer", "stable_baselines3"))
+        }
+        assert not algorithm_layer, f"{path.relative_to(root)} imports {sorted(algorithm_layer)}"
+    # and the task layer's modules import each other without a circle
+    common = root / "envs" / "driving" / "common"
+    graph = {
+        path.stem: {name.rsplit(".", 1)[1] for name in module_imports(path) if name.startswith("sb3_dacerf.envs.driving.common.")}
+        for path in common.glob("*.py")
+        if path.stem != "__init__"
+    }
+
+    def reaches(start: str, target: str, seen: set[str]) -> bool:
+        return any(nxt == target or (nxt not in seen and reaches(nxt, target, seen | {nxt})) for nxt in graph[start])
+
+    assert not [module for module in graph if reaches(module, module, {module})]
+
+
+def test_the_demonstrations_moved_with_a_deprecated_alias():
+    from sb3_dacerf.common import demonstrations
+    from sb3_dacerf.envs.driving import scripted
+
+    with pytest.warns(DeprecationWarning, match=r"moved to sb3_dacerf\.common\.demonstrations\.add_scripted_transitions"):
+        from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
+    assert add_scripted_transitions is demonstrations.add_scripted_transitions
+    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
+        scripted.no_such_name  # noqa: B018  (the attribute access is the test)
+
+
 @pytest.mark.parametrize(
     "config",
     [{"normalized_action": True}, {"action_mode": "target"}, {"action_mode": "target", "steering_feedforward": True}],
@@ -547,6 +601,79 @@ def test_density_changes_vehicle_count():
         counts[f"intersection {density}"] = np.mean(vehicles)
     assert counts["sparse"] < counts["normal"] < counts["dense"]
     assert counts["intersection sparse"] < counts["intersection normal"] < counts["intersection dense"]
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_density_drawn_per_episode_from_the_reset_seed(env_id):
+    env = gym.make(env_id, density={"sparse": 1, "dense": 3}, config={"duration": 1})
+    unwrapped = env.unwrapped
+    drawn = []
+    for seed in range(40):
+        _, info = env.reset(seed=seed)
+        drawn.append(info["density"])
+        assert info["density"] == unwrapped.density
+        # the episode has the drawn density's traffic settings
+        overrides = type(unwrapped).DENSITY_CONFIGS[info["density"]]
+        assert overrides and {key: unwrapped.config[key] for key in overrides} == overrides
+    assert set(drawn) == {"sparse", "dense"} and 20 < drawn.count("dense") < 40
+    # the same seeds draw the same densities and the same episodes, in any order
+    again = {seed: env.reset(seed=seed) for seed in (7, 3)}
+    assert [again[seed][1]["density"] for seed in (7, 3)] == [drawn[7], drawn[3]]
+    np.testing.assert_array_equal(again[3][0], env.reset(seed=3)[0])
+    assert unwrapped.density_weights == {"sparse": 0.25, "dense": 0.75}
+    assert make(env_id).unwrapped.density_weights == {"normal": 1.0}
+    uniform = gym.make(env_id, density="random").unwrapped.density_weights
+    assert uniform == pytest.approx({"sparse": 1 / 3, "normal": 1 / 3, "dense": 1 / 3})
+    assert gym.make(env_id, density=["dense", "sparse"]).unwrapped.density_weights == {"sparse": 0.5, "dense": 0.5}
+
+
+def test_multilane_density_sets_the_vehicle_count_of_each_episode():
+    env = gym.make("DACERF-Multilane-v0", density="random", config={"duration": 1})
+    counts = {}
+    for seed in range(12):
+        _, info = env.reset(seed=seed)
+        counts.setdefault(info["density"], set()).add(len(env.unwrapped.road.vehicles) - 1)
+    assert counts == {"sparse": {6}, "normal": {12}, "dense": {20}}
+
+
+@pytest.mark.parametrize(
+    "density, error, message",
+    [
+        ("heavy", ValueError, r"Unknown density 'heavy': expected one of 'sparse', 'normal', 'dense', 'random'"),
+        ([], ValueError, r"density=\[\] lists no density"),
+        (["sparse", "sparse"], ValueError, r"lists 'sparse' more than once: .* a dict of weights"),
+        (["sparse", "busy"], ValueError, r"Unknown density 'busy' in density=\['sparse', 'busy'\]"),
+        ({"sparse": -1}, ValueError, r"the weight of 'sparse' must be a finite number >= 0, got -1"),
+        ({"dense": float("nan")}, ValueError, r"the weight of 'dense' must be a finite number >= 0, got nan"),
+        ({"sparse": 0, "dense": 0}, ValueError, r"the weights sum to 0, .* give one a weight > 0"),
+        ({"sparse": "1"}, ValueError, r"the weight of 'sparse' must be a finite number >= 0, got '1'"),
+        (3, TypeError, r"density must be a string, a list or a dict, got 3 \(int\)"),
+    ],
+)
+def test_bad_densities_raise_clear_errors(density, error, message):
+    with pytest.raises(error, match=message):
+        gym.make("DACERF-Multilane-v0", density=density)
+
+
+def test_drawn_densities_refuse_config_keys_they_set():
+    with pytest.raises(ValueError, match=r"config \['vehicles_count'\] is what each episode's density sets.*leave"):
+        gym.make("DACERF-Multilane-v0", density="random", config={"vehicles_count": 3})
+    env = gym.make("DACERF-Intersection-v0", density=["sparse", "normal"])
+    with pytest.raises(ValueError, match=r"config \['spawn_probability'\] is what each episode's density sets"):
+        env.reset(options={"config": {"spawn_probability": 0.5}})
+    # one density keeps the config's value over the density's
+    env = gym.make("DACERF-Multilane-v0", density="sparse", config={"vehicles_count": 3})
+    env.reset(seed=0)
+    assert len(env.unwrapped.road.vehicles) - 1 == 3
+
+
+def test_env_pickled_before_density_distributions_unpickles():
+    env = gym.make("DACERF-Multilane-v0", density="dense", config={"duration": 1}).unwrapped
+    state = env.__getstate__() if hasattr(env, "__getstate__") else dict(env.__dict__)
+    state = {key: value for key, value in state.items() if key != "density_weights"}
+    restored = type(env).__new__(type(env))
+    restored.__setstate__(state)
+    assert restored.density == "dense" and restored.density_weights == {"dense": 1.0}
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
@@ -741,6 +868,8 @@ def test_check_env(env_id):
 
     gym_check_env(make(env_id).unwrapped, skip_render_check=True)
     sb3_check_env(make(env_id), warn=True)
+    # with the density drawn per episode (the checker's seeded resets must be reproducible)
+    gym_check_env(gym.make(env_id, density="random", config={"duration": 3}).unwrapped, skip_render_check=True)
 
 
 def test_scene_is_perceived_once_per_step_and_observe_has_no_side_effect(monkeypatch):
@@ -931,7 +1060,8 @@ def test_scripted_transitions_fill_a_model_s_replay_buffer():
     from stable_baselines3 import SAC
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from sb3_dacerf.envs.driving.scripted import ScriptedDriver, add_scripted_transitions
+    from sb3_dacerf.common.demonstrations import add_scripted_transitions
+    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
 
     vec_env = VecNormalize(DummyVecEnv([lambda: make("DACERF-Intersection-v0", duration=5)]), norm_reward=False)
     model = SAC("MlpPolicy", vec_env, seed=3, learning_starts=10, buffer_size=1_000)

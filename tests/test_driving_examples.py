@@ -166,6 +166,99 @@ def test_shipped_drivers_load_and_drive(capsys):
         assert "observations normalised with" in capsys.readouterr().out
 
 
+def test_train_on_drawn_densities_with_masked_normalisation_and_evaluate_at_each(tmp_path, capsys):
+    """train_driving.py --density random --vec-normalize masked; evaluate_driving.py --density all prints one table."""
+    import torch
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
+
+    torch.set_num_threads(1)
+    train, evaluate = load_example("train_driving"), load_example("evaluate_driving")
+    save = str(tmp_path / "mixed")
+    args = ["--env", "multilane", "--algo", "sac", "--timesteps", "100", "--learning-starts", "50", "--batch-size", "16"]
+    args += ["--config", json.dumps(SHORT), "--density", "random", "--vec-normalize", "masked", "--save", save]
+    train.main([*args, "--eval-episodes", "1", "--log-interval", "0"])
+    assert "DACERF-Multilane-v0 (random), sac, training 100 steps on 1 env(s), observations normalised (MaskedVecNormalize)" in (
+        capsys.readouterr().out
+    )
+    with open(save + "_multilane.json") as file:
+        assert json.load(file)["density"] == "random"
+    stats = VecNormalize.load(save + "_multilane_vecnormalize.pkl", DummyVecEnv([lambda: gym.make("DACERF-Multilane-v0")]))
+    assert isinstance(stats, MaskedVecNormalize)
+
+    results = evaluate.main([save + "_multilane", "--density", "all", "--episodes", "2", "--seed", "5"])
+    out = capsys.readouterr().out
+    assert set(results) == {"sparse", "normal", "dense"}
+    table = out[out.index("| density |") :].splitlines()
+    assert len(table) == 5 and [line.split(" | ")[0] for line in table[2:]] == ["| sparse", "| normal", "| dense"]
+    assert "| arrival | collision | off road |" in table[0]
+    # each row is the evaluation at that density on the same seeds
+    assert evaluate.main([save + "_multilane", "--density", "dense", "--episodes", "2", "--seed", "5"]) == results["dense"]
+    # a baseline at every density, and densities drawn per episode
+    scripted = evaluate.main(
+        ["--scripted", "--env", "multilane", "--density", "all", "--episodes", "1", "--config", json.dumps(SHORT)]
+    )
+    assert set(scripted) == {"sparse", "normal", "dense"}
+    drawn = evaluate.main(
+        ["--scripted", "--env", "multilane", "--density", "sparse,dense", "--episodes", "2", "--config", json.dumps(SHORT)]
+    )
+    assert drawn["episode_length"] >= 1
+    capsys.readouterr()
+    for bad, message in (
+        ("heavy", "Unknown density 'heavy'"),
+        ("sparse,sparse", "lists 'sparse' more than once"),
+        ('{"sparse": -1}', "the weight of 'sparse' must be a finite number >= 0"),
+        ("{sparse", "is not a JSON dict of weights"),
+    ):
+        with pytest.raises(SystemExit):
+            evaluate.main(["--scripted", "--env", "multilane", "--density", bad])
+        assert message in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        train.main(["--env", "multilane", "--density", "all"])
+    assert "to train on all of them, pass --density random" in capsys.readouterr().err
+
+
+def test_zero_empty_rows_changes_only_the_empty_rows(trained, capsys):
+    """--zero-empty-rows: empty vehicle rows get zeros after VecNormalize, present rows keep their normalisation."""
+    evaluate = load_example("evaluate_driving")
+    plain = evaluate.load_driver(trained, density="sparse")
+    zeroed = evaluate.load_driver(trained, density="sparse", zero_empty_rows=True)
+    assert plain.empty_rows is None and zeroed.empty_rows == (45, 8, 6)
+    obs, _ = plain.env.reset(seed=0)
+    table = obs[45:].reshape(8, 6)
+    assert (table[:, 5] == 0).any() and (table[:, 5] == 1).any()  # sparse traffic: both kinds of rows
+    seen = []
+    zeroed.model.predict = lambda normalized, deterministic: (seen.append(normalized) or np.zeros(2), None)
+    zeroed.act(obs)
+    expected = plain.vec_normalize.normalize_obs(obs)
+    expected[45:].reshape(8, 6)[table[:, 5] == 0] = 0.0
+    np.testing.assert_array_equal(seen[0], expected)
+    results = evaluate.main([trained, "--density", "sparse", "--episodes", "1", "--zero-empty-rows"])
+    assert "empty vehicle rows zeroed" in capsys.readouterr().out and results["episode_length"] >= 1
+    with pytest.raises(SystemExit):
+        evaluate.main(["--scripted", "--env", "multilane", "--zero-empty-rows"])
+    assert "--zero-empty-rows changes a model's normalised observations" in capsys.readouterr().err
+
+
+def test_density_diagnosis_reads_the_statistics_and_changes_the_observation():
+    """benchmarks/driving_density.py: the shipped multi-lane driver's statistics, and the observation changes."""
+    import torch
+
+    torch.set_num_threads(1)
+    diagnosis = load_example("driving_density", BENCHMARKS)
+    driver = diagnosis.load_driver(os.path.join(EXAMPLES, "models", "dacerf_multilane"))
+    table = diagnosis.statistics_table(driver.vec_normalize, (45, 8, 6)).splitlines()
+    assert len(table) == 10 and table[2].startswith("| 1 | 100.0% | -10.0 | -10.0 |")  # row 1 always filled, clipped
+    driver.config = {**driver.config, "duration": 2}
+    nearest = diagnosis.run(driver, "normal", 4, False, 1, 77_000)
+    assert nearest["vehicles_mean"] == 4 and nearest["clipped"] > 0
+    zeroed = diagnosis.run(driver, "normal", 4, True, 1, 77_000)
+    assert zeroed["vehicles_mean"] == 4 and zeroed["clipped"] == 0
+    low, mean, high = zeroed["reference_speed"]
+    assert 0 < low <= mean <= high
+
+
 def test_evaluate_errors_name_the_problem(trained, tmp_path):
     evaluate = load_example("evaluate_driving")
     with pytest.raises(SystemExit, match=r"no model file.*train_driving.py --save"):

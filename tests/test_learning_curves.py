@@ -185,6 +185,30 @@ def test_demonstrations_go_into_a_new_run_s_buffer_only(tmp_path, learning_curve
     assert not (tmp_path / "x").exists()
 
 
+def test_masked_normalisation_and_drawn_densities_in_a_driving_run(tmp_path, learning_curves, monkeypatch, capsys):
+    """--vec-normalize masked with --env-kwargs '{"density": "random"}': the checkpoint keeps MaskedVecNormalize."""
+    from stable_baselines3 import SAC
+
+    from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
+
+    settings = dict(
+        env="DACERF-Multilane-v0", env_kwargs={"density": "random", "config": {"duration": 2}}, vec_normalize="masked"
+    )
+    rows = learning_curves.run_one(job(tmp_path, "sac", 100, **settings))
+    assert [row["timesteps"] for row in rows] == [100]
+    folder = learning_curves.checkpoint_dir(tmp_path, "DACERF-Multilane-v0", "sac", 3)
+    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
+    normalizer = model.get_vec_normalize_env()
+    assert isinstance(normalizer, MaskedVecNormalize) and normalizer.rows == (45, 8, 6)
+    assert normalizer.obs_rms.row_rms.count > 100  # present vehicle rows were counted
+    # Refused outside the driving scenarios, before anything is written
+    monkeypatch.setattr(sys, "argv", ["learning_curves.py", "--vec-normalize", "masked", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        learning_curves.main()
+    assert "--vec-normalize masked normalises the vehicle rows of a driving scenario" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
 def test_demonstrator_junction_gives_the_demonstrations_at_the_intersection_only(tmp_path, learning_curves, monkeypatch, capsys):
     """--demonstrator junction: the JunctionDriver fills the buffer; refused without --demonstrations or elsewhere."""
     from stable_baselines3 import SAC

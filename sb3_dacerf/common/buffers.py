@@ -13,7 +13,7 @@ Example::
         replay_buffer_class=DemonstrationReplayBuffer,
         replay_buffer_kwargs=dict(demonstration_fraction=0.5),
     )
-    add_scripted_transitions(model, 10_000)  # sb3_dacerf.envs.driving.scripted: goes to the demonstrations
+    add_scripted_transitions(model, 10_000)  # sb3_dacerf.common.demonstrations: goes to the demonstrations
     model.learn(100_000)
 
 Any other code adds demonstrations inside ``with model.replay_buffer.recording_demonstrations():``.

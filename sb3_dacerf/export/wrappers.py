@@ -63,6 +63,11 @@ class ExportablePolicy(nn.Module, ABC):
                 self.register_buffer(f"obs_std_{key}", th.as_tensor(np.sqrt(rms.var + vec_normalize.epsilon), dtype=th.float64))
                 self.normalized_keys.append(key)
             self.clip_obs = float(vec_normalize.clip_obs)
+        # MaskedVecNormalize's table of optional rows (empty rows zeros, the mask kept 0 / 1): (start, count, size)
+        self.masked_rows: tuple[int, int, int] | None = None
+        if self.normalized_keys == ["obs"] and getattr(vec_normalize, "rows", None) is not None:
+            start, count, size = vec_normalize.rows  # type: ignore[union-attr]  # (only MaskedVecNormalize has rows)
+            self.masked_rows = (int(start), int(count), int(size))
 
     @property
     def default_noise_shape(self) -> tuple[int, ...]:
@@ -71,7 +76,16 @@ class ExportablePolicy(nn.Module, ABC):
 
     def _normalize(self, obs: th.Tensor, key: str) -> th.Tensor:
         mean, std = getattr(self, f"obs_mean_{key}"), getattr(self, f"obs_std_{key}")
-        return ((obs.double() - mean) / std).clamp(-self.clip_obs, self.clip_obs)
+        normalized = ((obs.double() - mean) / std).clamp(-self.clip_obs, self.clip_obs)
+        if self.masked_rows is None:
+            return normalized
+        # As MaskedVecNormalize: a row whose mask is 0 becomes zeros, the mask entry stays 0 / 1
+        start, count, size = self.masked_rows
+        end = start + count * size
+        table = normalized[..., start:end].reshape(*normalized.shape[:-1], count, size)
+        present = obs[..., start:end].reshape(*obs.shape[:-1], count, size)[..., -1:].double().gt(0.5).double()
+        table = th.cat([table[..., :-1] * present, present], dim=-1).reshape(*normalized.shape[:-1], count * size)
+        return th.cat([normalized[..., :start], table, normalized[..., end:]], dim=-1)
 
     @abstractmethod
     def generate(self, features: th.Tensor, noise: th.Tensor | None) -> th.Tensor:

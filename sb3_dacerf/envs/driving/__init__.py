@@ -4,7 +4,8 @@ The paper's two driving scenarios on highway-env (extra ``driving``: ``pip insta
 - ``DACERF-Multilane-v0``: multi-lane highway (:class:`sb3_dacerf.envs.driving.multilane.MultilaneEnv`);
 - ``DACERF-Intersection-v0``: urban intersection (:class:`sb3_dacerf.envs.driving.intersection.IntersectionEnv`).
 
-``gym.make`` kwargs: ``density="sparse" | "normal" | "dense"``, ``render_mode`` (``"rgb_array"`` renders
+``gym.make`` kwargs: ``density="sparse" | "normal" | "dense"`` (or ``"random"``, a list or a dict of weights: each
+reset draws the episode's density, see :mod:`sb3_dacerf.envs.driving.density`), ``render_mode`` (``"rgb_array"`` renders
 offscreen) and ``config`` (a dict of overrides of the env's ``default_config()``; every value is checked by type
 and range there). Observation, action and reward are described in :mod:`sb3_dacerf.envs.driving.common`; the
 severe-event penalty is by default the paper's "dynamically calculated" one (``collision_penalty="dynamic"``, see

@@ -40,6 +40,13 @@ from highway_env.vehicle.kinematics import Vehicle
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
 from sb3_dacerf.envs.driving.common.config import Rule, boolean, choice, interval, number
 from sb3_dacerf.envs.driving.common.reference import nominal_steering
+from sb3_dacerf.envs.driving.common.simulation import (
+    FastRegulatedRoad,
+    FastRoad,
+    IndexedRoadNetwork,
+    SharedPredictions,
+    fast_vehicle_class,
+)
 
 ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
 """Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
@@ -112,13 +119,18 @@ class FirstComeRoad(RegulatedRoad):
         return v1 if v1.front_distance_to(v2) > v2.front_distance_to(v1) else v2
 
 
+class FastFirstComeRoad(SharedPredictions, FirstComeRoad, FastRoad):
+    """:class:`FirstComeRoad` on the faster classes of :mod:`.simulation`, with the same answers."""
+
+
 class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     """
     Urban intersection with straight, left, right and U-turn routes; see the module docstring.
 
     :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
     :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
+    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``, or ``"random"``, a list or a
+        dict of weights to draw one per episode (:mod:`sb3_dacerf.envs.driving.density`)
     """
 
     road: RegulatedRoad
@@ -178,12 +190,22 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             raise ValueError(f"reference_speed_ranges lacks the route(s) {sorted(missing)} (overrides replace the whole dict)")
 
     def _make_road(self) -> None:
-        """highway-env's junction, on a :class:`FirstComeRoad` if ``right_of_way`` is ``"first_come"``."""
+        """
+        highway-env's junction, on a :class:`FirstComeRoad` if ``right_of_way`` is ``"first_come"``, and on the
+        faster classes of :mod:`.simulation` (:class:`FastFirstComeRoad`, ``FastRegulatedRoad``) if
+        ``fast_simulation``.
+        """
         super()._make_road()
-        if self.config["right_of_way"] == "first_come":
+        first_come, fast = self.config["right_of_way"] == "first_come", self.config["fast_simulation"]
+        if first_come or fast:
             road = self.road
-            self.road = FirstComeRoad(
-                network=road.network,
+            road_class = {
+                (True, True): FastFirstComeRoad,
+                (True, False): FirstComeRoad,
+                (False, True): FastRegulatedRoad,
+            }[first_come, fast]
+            self.road = road_class(
+                network=IndexedRoadNetwork.from_network(road.network) if fast else road.network,
                 np_random=road.np_random,
                 record_history=road.record_history,
                 neighbour_vehicles_connected_lanes=road.neighbour_vehicles_connected_lanes,
@@ -248,6 +270,9 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     def _spawn_vehicle(self, longitudinal: float = 0, *args, **kwargs):
         """highway-env's spawner, with its IDM settings for junctions set per vehicle instead of on the class."""
         vehicle = super()._spawn_vehicle(longitudinal, *args, **kwargs)
+        if vehicle is not None and self.config["fast_simulation"]:
+            # The same vehicle, deciding through the faster methods of .simulation (no state of its own to add)
+            vehicle.__class__ = fast_vehicle_class(type(vehicle))
         if vehicle is not None:
             # highway-env's intersection-v0 sets these on the IDMVehicle class, which leaks into every other env.
             vehicle.DISTANCE_WANTED, vehicle.COMFORT_ACC_MAX, vehicle.COMFORT_ACC_MIN = 7.0, 6.0, -3.0

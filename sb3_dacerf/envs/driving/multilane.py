@@ -23,11 +23,12 @@ import numpy as np
 from highway_env import utils
 from highway_env.envs.highway_env import HighwayEnv
 from highway_env.road.lane import AbstractLane
-from highway_env.road.road import LaneIndex
+from highway_env.road.road import LaneIndex, Road
 from highway_env.vehicle.kinematics import Vehicle
 
 from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
 from sb3_dacerf.envs.driving.common.config import Rule, choice, interval, number
+from sb3_dacerf.envs.driving.common.simulation import FastRoad, IndexedRoadNetwork, fast_vehicle_class
 
 REFERENCE_LANES = ("random", "current", "left", "right")
 
@@ -38,9 +39,11 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
 
     :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
     :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
+    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``, or ``"random"``, a list or a
+        dict of weights to draw one per episode (:mod:`sb3_dacerf.envs.driving.density`)
     """
 
+    road: Road
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
         "sparse": {"vehicles_count": 6},
         "normal": {"vehicles_count": 12},
@@ -83,6 +86,18 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         if self.config["lanes_count"] < 1:
             raise ValueError(f"lanes_count must be >= 1, got {self.config['lanes_count']}")
 
+    def _create_road(self) -> None:
+        """highway-env's straight multi-lane road, on the faster classes of :mod:`.simulation` if ``fast_simulation``."""
+        super()._create_road()
+        if self.config["fast_simulation"]:
+            road = self.road
+            self.road = FastRoad(
+                network=IndexedRoadNetwork.from_network(road.network),
+                np_random=road.np_random,
+                record_history=road.record_history,
+                neighbour_vehicles_connected_lanes=road.neighbour_vehicles_connected_lanes,
+            )
+
     def _create_vehicles(self) -> None:
         """Create the ego near its reference speed, its reference lane, and the traffic around it."""
         config, rng, network = self.config, self.np_random, self.road.network
@@ -123,7 +138,12 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         """
         config, rng = self.config, self.np_random
         vehicle_type = utils.class_from_path(config["other_vehicles_type"])
+        if config["fast_simulation"]:
+            vehicle_type = fast_vehicle_class(vehicle_type)
         ego_x, ego_lane = self.vehicle.position[0], self.vehicle.lane_index
+        abscissas: dict[LaneIndex, list[float]] = {}  # of the vehicles on each lane, gathered once for the 50 draws
+        for v in self.road.vehicles:
+            abscissas.setdefault(v.lane_index, []).append(v.position[0])
         for _ in range(50):
             lane_index: LaneIndex = ("0", "1", int(rng.integers(config["lanes_count"])))
             x = rng.uniform(low, high)
@@ -131,7 +151,7 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
                 continue
             if abs(x - ego_x) < self.TRAFFIC_GAP:  # nobody alongside the ego either
                 continue
-            if any(v.lane_index == lane_index and abs(v.position[0] - x) < self.TRAFFIC_GAP for v in self.road.vehicles):
+            if any(abs(v_x - x) < self.TRAFFIC_GAP for v_x in abscissas.get(lane_index, ())):
                 continue
             vehicle = vehicle_type.make_on_lane(self.road, lane_index, x, speed=rng.uniform(*config["traffic_speed_range"]))
             vehicle.randomize_behavior()

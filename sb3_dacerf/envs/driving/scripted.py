@@ -21,19 +21,20 @@ Example::
     driver = ScriptedDriver(env)
     obs, _ = env.reset(seed=0)
     obs, reward, terminated, truncated, info = env.step(driver(obs))
+
+:func:`sb3_dacerf.common.demonstrations.add_scripted_transitions` puts a driver's transitions in a model's replay
+buffer (demonstrations).
 """
 
 from __future__ import annotations
 
-from contextlib import AbstractContextManager, nullcontext
+import warnings
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
-from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
@@ -301,67 +302,17 @@ DEMONSTRATORS: dict[str, type[ScriptedDriver]] = dict(zip(DEMONSTRATOR_NAMES, (S
 """The drivers by the names the command-line tools give them."""
 
 
-def add_scripted_transitions(
-    model: OffPolicyAlgorithm, n_transitions: int, driver: type[ScriptedDriver] = ScriptedDriver, **driver_kwargs: Any
-) -> None:
-    """
-    Put ``n_transitions`` of the scripted driver in an off-policy model's replay buffer (demonstrations), before it
-    learns: each env of the model's own training ``VecEnv`` is driven by a :class:`ScriptedDriver` (or ``driver``), and the
-    transitions are stored as SB3 stores its own rollouts (raw observations and rewards with ``VecNormalize``, whose
-    statistics see them too; actions in the policy's ``[-1, 1]`` scale; time limits marked as such). They do not count
-    as the model's steps (``model.num_timesteps`` stays as it is), and they stay in the buffer until it wraps around.
-    With a :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer` they go to its demonstrations' part, which
-    keeps them and gives them a fixed share of every batch.
-
-    With DACERF they are imitated as well as evaluated: its actor's flow-matching term fits the replay actions
-    (moved by the Langevin steps), so the first updates already copy the driver.
-
-    Example::
-
-        model = DACERF("MlpPolicy", VecNormalize(DummyVecEnv([lambda: gym.make("DACERF-Intersection-v0")])))
-        add_scripted_transitions(model, 10_000)
-        model.learn(100_000)
-
-    :param model: an SB3 off-policy model (DACERF, DACER, SAC, TD3, ...) on a driving scenario's ``DummyVecEnv``
-        (possibly inside ``VecNormalize``): the drivers read the env objects, so they must live in this process
-    :param n_transitions: how many transitions to add (rounded up to a multiple of the number of envs)
-    :param driver: the demonstrator's class: :class:`ScriptedDriver` (default) or, at the intersection,
-        :class:`JunctionDriver`
-    :param driver_kwargs: arguments of the driver's class (``yield_to_crossing``, ...)
-    :raises ValueError: a negative ``n_transitions``, a model whose envs are not in a ``DummyVecEnv``, or more
-        transitions than a ``DemonstrationReplayBuffer``'s demonstrations' part has room for
-    :raises TypeError: envs that the driver does not drive (from its constructor)
-    """
-    from stable_baselines3.common.vec_env import DummyVecEnv
-
-    if n_transitions < 0:
-        raise ValueError(f"n_transitions must be >= 0, got {n_transitions}")
-    env = model.get_env()
-    vec_normalize = model.get_vec_normalize_env()
-    inner = vec_normalize.venv if vec_normalize is not None else env
-    if env is None or not isinstance(inner, DummyVecEnv):
-        raise ValueError(
-            f"add_scripted_transitions needs the model's envs in this process (a DummyVecEnv, possibly in VecNormalize), "
-            f"got {type(inner).__name__}: fill the buffer of a model on a DummyVecEnv (SubprocVecEnv keeps its envs in "
-            "other processes)"
+def __getattr__(name: str) -> Any:
+    """``add_scripted_transitions``, which moved to :mod:`sb3_dacerf.common.demonstrations`, with a deprecation warning."""
+    if name == "add_scripted_transitions":
+        warnings.warn(
+            "sb3_dacerf.envs.driving.scripted.add_scripted_transitions moved to "
+            "sb3_dacerf.common.demonstrations.add_scripted_transitions (the environments import nothing from the "
+            "algorithms): import it from there; this alias will be removed",
+            DeprecationWarning,
+            stacklevel=2,
         )
-    n_steps = -(-n_transitions // env.num_envs)
-    buffer = model.replay_buffer
-    recording: AbstractContextManager[None] = nullcontext()
-    if isinstance(buffer, DemonstrationReplayBuffer):
-        free = buffer.demonstration_capacity - buffer.n_demonstrations()
-        if n_steps * env.num_envs > free:
-            raise ValueError(
-                f"{n_steps * env.num_envs} demonstrations do not fit in the {free} free places of the buffer's "
-                "demonstrations: pass a larger demonstration_size in replay_buffer_kwargs (or add fewer)"
-            )
-        recording = buffer.recording_demonstrations()
-    drivers = [driver(single, **driver_kwargs) for single in inner.envs]
-    model._last_obs = env.reset()  # type: ignore[assignment]  # a VecEnv's observations are arrays
-    model._last_original_obs = vec_normalize.get_original_obs() if vec_normalize is not None else model._last_obs
-    with recording:
-        for _ in range(n_steps):
-            raw = model._last_original_obs
-            actions = np.stack([driver(obs) for driver, obs in zip(drivers, raw, strict=True)])  # type: ignore[arg-type]
-            new_obs, rewards, dones, infos = env.step(actions)
-            model._store_transition(buffer, model.policy.scale_action(actions), new_obs, rewards, dones, infos)  # type: ignore[arg-type]
+        from sb3_dacerf.common.demonstrations import add_scripted_transitions
+
+        return add_scripted_transitions
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

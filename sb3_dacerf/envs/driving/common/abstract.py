@@ -20,14 +20,13 @@ from sb3_dacerf.envs.driving.common.config import COMMON_RULES, Rule, check_conf
 from sb3_dacerf.envs.driving.common.observation import EgoFrameObservation, Scene, observe_scene
 from sb3_dacerf.envs.driving.common.reference import ReferencePath, nominal_steering
 from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, reward_terms
+from sb3_dacerf.envs.driving.density import DensitySpec, density_weights
 
 if TYPE_CHECKING:
     # What the mixin is mixed into: type checkers see highway-env's attributes (config, vehicle, road, ...) and methods
     from highway_env.envs.common.abstract import AbstractEnv as _HighwayEnv
 else:
     _HighwayEnv = object
-
-DENSITIES = ("sparse", "normal", "dense")
 
 # highway-env keys that our action / observation / reward replace: dropped so setting them is an error, not a no-op.
 _REPLACED_STOCK_KEYS = (
@@ -80,7 +79,10 @@ class PaperDrivingMixin(_HighwayEnv):
 
     :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
     :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``
+    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``, or a distribution that every
+        reset draws the episode's density from: ``"random"`` (the three alike), a list of densities or a dict of
+        weights (:mod:`sb3_dacerf.envs.driving.density`); the config keys of :attr:`DENSITY_CONFIGS` are then the
+        drawn density's, so ``config`` must leave them out
     """
 
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}
@@ -98,19 +100,26 @@ class PaperDrivingMixin(_HighwayEnv):
     action_space: spaces.Space | None
     viewer: EnvViewer | None
 
-    def __init__(self, config: dict | None = None, render_mode: str | None = None, density: str = "normal") -> None:
-        if density not in DENSITIES:
-            raise ValueError(f"Unknown density {density!r}: expected one of {', '.join(map(repr, DENSITIES))}")
+    density: str
+    """The traffic density of the current episode (drawn at each reset when the env was made with several)."""
+    density_weights: dict[str, float]
+    """The probability of each density an episode can have (one density: ``{density: 1.0}``)."""
+
+    def __init__(self, config: dict | None = None, render_mode: str | None = None, density: DensitySpec = "normal") -> None:
+        self.density_weights = density_weights(density)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"Unknown render_mode {render_mode!r}: expected None or one of {self.metadata['render_modes']}")
         if config is not None and not isinstance(config, dict):
             raise TypeError(f"config must be a dict of overrides, got {type(config).__name__}")
-        self.density = density
+        self.density = next(iter(self.density_weights))
+        self._check_density_keys(config or {})
         self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
         self.scene: Scene | None = None
         self._episode_over = False  # terminated or truncated returned since the last reset
         self._warned_step_after_end = False
-        super().__init__({**self.DENSITY_CONFIGS[density], **(config or {})}, render_mode=render_mode)
+        # With several densities, each reset sets the drawn density's keys.
+        density_config = self.DENSITY_CONFIGS[self.density] if len(self.density_weights) == 1 else {}
+        super().__init__({**density_config, **(config or {})}, render_mode=render_mode)
 
     @classmethod
     def default_config(cls) -> dict:
@@ -171,6 +180,9 @@ class PaperDrivingMixin(_HighwayEnv):
                 # ends the episode with the severe-event penalty; 0: never
                 "stall_timeout": 0.0,
                 "stall_distance": 2.0,
+                # True: highway-env's road, lane network and IDM traffic through the faster classes of .simulation,
+                # which give the same traffic and episodes; False: highway-env's own classes (slower)
+                "fast_simulation": True,
             }
         )
         return config
@@ -181,6 +193,8 @@ class PaperDrivingMixin(_HighwayEnv):
         since then take their defaults, and an episode in progress goes on without a stall history.
         """
         self.__dict__.update({**state, "config": {**self.default_config(), **state["config"]}})
+        if "density_weights" not in state:
+            self.density_weights = {self.density: 1.0}
         if "_progress" not in state and self.scene is not None:
             self._start_stall_history()
 
@@ -190,8 +204,21 @@ class PaperDrivingMixin(_HighwayEnv):
             raise ValueError(
                 f"Unknown config key(s) {unknown} for {type(self).__name__}; valid keys: {sorted(self.default_config())}"
             )
+        self._check_density_keys(config or {})
         super().configure(config)
         check_config(self.config, self.config_rules(), self.default_config(), type(self).__name__)
+
+    def _check_density_keys(self, config: dict) -> None:
+        """Refuse config values for the keys a drawn density sets (they would be overwritten at the next reset)."""
+        if len(getattr(self, "density_weights", ())) < 2:
+            return
+        density_keys = sorted({key for overrides in self.DENSITY_CONFIGS.values() for key in overrides} & set(config))
+        if density_keys:
+            raise ValueError(
+                f"{type(self).__name__}: config {density_keys} is what each episode's density sets, and this env draws "
+                f"the density per episode (probabilities {self.density_weights}): leave {density_keys} out of the "
+                "config, or make the env with one density"
+            )
 
     @classmethod
     def config_rules(cls) -> dict[str, Rule]:
@@ -227,6 +254,11 @@ class PaperDrivingMixin(_HighwayEnv):
     def _reset(self) -> None:
         self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
         self._episode_over = self._warned_step_after_end = False
+        if len(self.density_weights) > 1:
+            # Drawn from the env's generator, which reset(seed=...) seeds: a seed gives the same density every time.
+            names, probabilities = list(self.density_weights), list(self.density_weights.values())
+            self.density = names[int(self.np_random.choice(len(names), p=probabilities))]
+            self.config.update(self.DENSITY_CONFIGS[self.density])
         super()._reset()
         # The ego stops instead of reversing: the paper's task has no reverse gear.
         self.vehicle.MIN_SPEED = 0.0
@@ -403,6 +435,7 @@ class PaperDrivingMixin(_HighwayEnv):
             "collision": crashed,
             "off_road": off_road,
             "stalled": stalled,
+            "density": self.density,
             "is_success": bool(self._is_success() and not (crashed or off_road or stalled)),
             "reward_terms": dict(self._reward_terms),
         }

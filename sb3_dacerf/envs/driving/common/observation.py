@@ -19,19 +19,59 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 from gymnasium import spaces
 from highway_env import utils
 from highway_env.envs.common.observation import ObservationType
 
-if TYPE_CHECKING:
-    from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
+from sb3_dacerf.envs.driving.common.reference import ReferencePath
 
 EGO_FEATURES = 5
 WAYPOINT_FEATURES = 4
 VEHICLE_FEATURES = 6
+
+
+def vehicle_rows(config: dict) -> tuple[int, int, int]:
+    """
+    Where the surrounding vehicles are in the flat observation of an env with this config: the ``rows`` of
+    :class:`sb3_dacerf.common.vec_normalize.MaskedVecNormalize`.
+
+    :param config: the env's config (``reference_waypoints``, ``surrounding_vehicles``)
+    :return: the index of the first vehicle entry, the number of vehicle rows (M) and their length (6, the mask last)
+    """
+    return EGO_FEATURES + WAYPOINT_FEATURES * config["reference_waypoints"], config["surrounding_vehicles"], VEHICLE_FEATURES
+
+
+class PerceivingEnv(Protocol):
+    """
+    What :func:`observe_scene` and :class:`EgoFrameObservation` read of an env: the paper's driving envs
+    (:class:`~sb3_dacerf.envs.driving.common.abstract.PaperDrivingMixin`) provide it. Reading it through this protocol
+    keeps the observation independent of the task layer that uses it.
+    """
+
+    config: dict
+    """The env's config (``perception_distance``, ``reference_waypoints``, the scales, ...)."""
+    reference: ReferencePath
+    """The ego's reference path."""
+    reference_speed: float
+    """The episode's target speed [m/s]."""
+
+    @property
+    def vehicle(self) -> Any:
+        """The ego vehicle (highway-env's)."""
+
+    @property
+    def road(self) -> Any:
+        """The road with every vehicle (highway-env's)."""
+
+    @property
+    def action_type(self) -> Any:
+        """The ego's action type, whose ``command`` is the applied ``[a_x, δ]``."""
+
+    def _road_clearance(self, position: np.ndarray) -> float:
+        """Distance [m] from a position to the nearest road edge, negative off the road."""
 
 
 @dataclass
@@ -108,7 +148,7 @@ def traffic_following_speed(
     return float(min(target_speed, caps.min()))
 
 
-def observe_scene(env: PaperDrivingMixin) -> Scene:
+def observe_scene(env: PerceivingEnv) -> Scene:
     """
     Compute what the ego perceives in the env's current state (reads the env, changes nothing).
 
@@ -173,7 +213,7 @@ def observe_scene(env: PaperDrivingMixin) -> Scene:
 class EgoFrameObservation(ObservationType):
     """The paper's flat ego-frame observation; see the module docstring for layout and scaling."""
 
-    def __init__(self, env: PaperDrivingMixin, **kwargs) -> None:
+    def __init__(self, env: PerceivingEnv, **kwargs) -> None:
         super().__init__(env)
         config = env.config
         self.n_waypoints, self.n_vehicles = config["reference_waypoints"], config["surrounding_vehicles"]
