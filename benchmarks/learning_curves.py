@@ -27,6 +27,15 @@ each rollout step collects N transitions and is followed by the variant's gradie
 of ``--timesteps`` transitions takes ``--timesteps / N`` gradient steps, N transitions per gradient step; steps,
 evaluations and checkpoints are counted in transitions.
 
+``--steps-per-gradient S`` sets the data regime instead: S environment steps (transitions) per gradient step, the
+DACER-F paper's "sample batch size" (200 in its table; see the "Data regime" guide and
+``sb3_dacerf.common.regime``). With ``--n-envs N``, S >= 1 must be a multiple of N: each rollout steps the N
+environments S / N times, then makes one gradient step; S < 1 must be 1/G (``1/4``, ``0.25``): G gradient steps per
+transition. ``--vec-env subproc`` steps the N environments in as many processes (SB3's ``SubprocVecEnv``; count the
+cores); its environments cannot be pickled into a checkpoint, so it needs ``--checkpoint-freq 0``. Every row of the
+CSVs carries both axes, ``env_steps`` (= ``timesteps``, transitions) and ``gradient_steps`` (updates made);
+``--x-axis gradient_steps`` plots against the latter.
+
 ``--demonstrations N`` (driving scenarios) puts N transitions of the scripted driver
 (:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`) in a new run's replay buffer before it trains, collected
 on its own training env as SB3 collects its rollouts; they stay in the buffer and are not counted in the run's steps.
@@ -242,16 +251,26 @@ def training_env_kwargs(env_kwargs: dict[str, Any], train_env_kwargs: dict[str, 
 def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> Any:
     """
     A fresh model of one variant on its training environment: ``job["n_envs"]`` copies (default 1) in a
-    ``DummyVecEnv``, VecNormalize'd with ``job["vec_normalize"]`` (``True`` or ``"plain"``: SB3's; ``"masked"``:
+    ``DummyVecEnv`` (``SubprocVecEnv`` with ``job["vec_env"] == "subproc"``), VecNormalize'd with
+    ``job["vec_normalize"]`` (``True`` or ``"plain"``: SB3's; ``"masked"``:
     :class:`~sb3_dacerf.common.vec_normalize.MaskedVecNormalize` over a driving scenario's vehicle rows), rewards too
-    with ``job["normalize_reward"]``.
+    with ``job["normalize_reward"]``; ``job["steps_per_gradient"]`` sets ``train_freq`` and ``gradient_steps``
+    (``sb3_dacerf.common.regime.steps_per_gradient_kwargs``).
     """
     import gymnasium as gym
     from stable_baselines3.common.noise import NormalActionNoise
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+
+    from sb3_dacerf.common.regime import steps_per_gradient_kwargs
 
     env_kwargs = training_env_kwargs(job["env_kwargs"], job.get("train_env_kwargs") or {})
-    env = DummyVecEnv([lambda: gym.make(job["env"], **env_kwargs)] * job.get("n_envs", 1))
+    n_envs = job.get("n_envs", 1)
+    if job.get("vec_env", "dummy") == "subproc":
+        # "module:id" makes the worker processes import (and so register) the package's ids
+        env_id = f"sb3_dacerf:{job['env']}"
+        env = SubprocVecEnv([lambda: gym.make(env_id, **env_kwargs)] * n_envs)
+    else:
+        env = DummyVecEnv([lambda: gym.make(job["env"], **env_kwargs)] * n_envs)
     norm_reward = bool(job.get("normalize_reward"))
     if job["vec_normalize"] == "masked":
         from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
@@ -261,6 +280,8 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     elif job["vec_normalize"] or norm_reward:
         env = VecNormalize(env, norm_obs=True, norm_reward=norm_reward)
     kwargs = dict(kwargs)
+    if job.get("steps_per_gradient") is not None:
+        kwargs.update(steps_per_gradient_kwargs(job["steps_per_gradient"], n_envs))
     if job.get("demonstration_fraction") is not None:
         from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 
@@ -270,6 +291,21 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
         dim = env.action_space.shape[0]
         kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
     return algorithm("MlpPolicy", env, seed=job["seed"], device=job["device"], **kwargs)
+
+
+def check_regime(model: Any, job: dict[str, Any], folder: Path) -> None:
+    """Refuse to resume a checkpoint whose data regime (``train_freq``, ``gradient_steps``) the job does not ask for."""
+    if job.get("steps_per_gradient") is None:
+        return
+    from sb3_dacerf.common.regime import steps_per_gradient_kwargs
+
+    wanted = steps_per_gradient_kwargs(job["steps_per_gradient"], job.get("n_envs", 1))
+    saved = dict(train_freq=model.train_freq.frequency, gradient_steps=model.gradient_steps)
+    if saved != wanted:
+        raise SystemExit(
+            f"{folder}: the checkpoint trains with {saved}, --steps-per-gradient {job['steps_per_gradient']} asks for "
+            f"{wanted}: use another --out for another data regime"
+        )
 
 
 def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
@@ -306,6 +342,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     elapsed = 0.0
     if job["checkpoint_freq"] and (folder / "state.pkl").exists():
         model, rows, elapsed = load_checkpoint(algorithm, folder, job["device"])
+        check_regime(model, job, folder)
         print(f"{folder}: resumed at {model.num_timesteps} steps", flush=True)
     else:
         model = new_model(job, algorithm, kwargs)
@@ -344,6 +381,8 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
                 variant=job["variant"],
                 seed=job["seed"],
                 timesteps=model.num_timesteps,
+                env_steps=model.num_timesteps,
+                gradient_steps=model._n_updates,
                 mean_return=float(np.mean(returns)),
                 episode_length=float(np.mean(lengths)),
                 arrival_rate=float(np.mean(successes)),
@@ -374,6 +413,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     if job["checkpoint_freq"] and model.num_timesteps > resumed_at:
         # The finished model, the one the last evaluation describes (benchmarks/export_driver.py ships it)
         save_checkpoint(model, folder, rows, time.perf_counter() - start)
+    model.get_env().close()  # with --vec-env subproc, ends the environments' processes
     return rows
 
 
@@ -385,7 +425,22 @@ def bootstrap_interval(values: np.ndarray, rng: np.random.Generator, n_resamples
     return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
 
 
-def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
+X_AXES = {"env_steps": "environment steps", "gradient_steps": "gradient steps"}
+
+
+def report(rows: list[dict[str, Any]], env_id: str, out: Path, x_axis: str = "env_steps") -> str:
+    """
+    Plot the curves of ``rows`` (mean and 95% bootstrap interval over seeds) to ``<out>/<env>.png``, or
+    ``<out>/<env>-gradient_steps.png`` against gradient steps, write them all to ``<out>/<env>.csv`` and return the
+    markdown table of the final evaluations.
+
+    :param rows: evaluation rows of the runs (``run_one``'s)
+    :param env_id: the environment, for the title and the file names
+    :param out: the results folder
+    :param x_axis: ``"env_steps"`` (transitions; runs written before the column existed have ``timesteps``) or
+        ``"gradient_steps"``
+    :return: the table
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -393,33 +448,43 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
     import pandas as pd
 
     frame = pd.DataFrame(rows)
+    if x_axis not in X_AXES:
+        raise ValueError(f"x_axis {x_axis!r}: choose one of {', '.join(X_AXES)}")
+    if "env_steps" not in frame:
+        frame["env_steps"] = frame["timesteps"]
+    frame["env_steps"] = frame["env_steps"].fillna(frame["timesteps"])
+    if x_axis not in frame or frame[x_axis].isna().any():
+        missing = sorted(frame.variant[frame[x_axis].isna()].unique()) if x_axis in frame else sorted(frame.variant.unique())
+        raise SystemExit(f"runs of {missing} have no {x_axis} column: plot them against env_steps, or train them again")
     rng = np.random.default_rng(0)
     rates = ("arrival_rate", "collision_rate", "off_road_rate")  # off_road_rate: runs from 2026-11-23 on
     metrics = ["mean_return"] + [m for m in rates if m in frame and frame[m].notna().any()]
     figure, axes = plt.subplots(1, len(metrics), figsize=(5.5 * len(metrics), 3.8), squeeze=False)
     lines = [
-        "| variant | seeds | steps | final return (mean [95% CI]) | "
+        "| variant | seeds | steps | gradient steps | final return (mean [95% CI]) | "
         + " | ".join(m.replace("_", " ") for m in metrics[1:])
         + (" | " if len(metrics) > 1 else "")
         + "action spread | train minutes |",
-        "|---|---|---|---|" + "---|" * (len(metrics) - 1) + "---|---|",
+        "|---|---|---|---|---|" + "---|" * (len(metrics) - 1) + "---|---|",
     ]
     for variant, group in frame.groupby("variant", sort=False):
-        curve = group.groupby("timesteps")
+        curve = group.groupby(x_axis)
         for axis, metric in zip(axes[0], metrics, strict=True):
             steps = np.array(sorted(curve.groups))
             values = [curve.get_group(step)[metric].to_numpy() for step in steps]
             intervals = np.array([bootstrap_interval(v, rng) for v in values])
             axis.plot(steps, [v.mean() for v in values], label=variant)
             axis.fill_between(steps, intervals[:, 0], intervals[:, 1], alpha=0.2)
-            axis.set_xlabel("environment steps")
+            axis.set_xlabel(X_AXES[x_axis])
             axis.set_ylabel(metric.replace("_", " "))
         final = group[group.timesteps == group.timesteps.max()]
+        updates = final.gradient_steps.mean() if "gradient_steps" in final else np.nan
         low, high = bootstrap_interval(final.mean_return.to_numpy(), rng)
         cells = [f"{final[m].mean():.2f}" for m in metrics[1:]]
         lines.append(
             f"| {variant} | {final.seed.nunique()} | {int(final.timesteps.max())} | "
-            f"{final.mean_return.mean():.1f} [{low:.1f}, {high:.1f}] | "
+            + ("n/a | " if np.isnan(updates) else f"{updates:.0f} | ")
+            + f"{final.mean_return.mean():.1f} [{low:.1f}, {high:.1f}] | "
             + "".join(f"{c} | " for c in cells)
             + f"{final.action_spread.mean():.3f} | {final.wall_seconds.mean() / 60:.1f} |"
         )
@@ -427,7 +492,7 @@ def report(rows: list[dict[str, Any]], env_id: str, out: Path) -> str:
     figure.suptitle(f"{env_id}: deterministic evaluation\nmean and 95% bootstrap CI over seeds", fontsize=10)
     figure.tight_layout()
     stem = env_id.replace("/", "_")
-    figure.savefig(out / f"{stem}.png", dpi=110)
+    figure.savefig(out / plot_name(env_id, x_axis), dpi=110)
     frame.to_csv(out / f"{stem}.csv", index=False)
     return "\n".join(lines)
 
@@ -441,6 +506,45 @@ def collect_runs(folder: Path, variants: list[str]) -> list[dict[str, Any]]:
         if path.name[len(variant) + len("-seed") : -len(".csv")].isdigit()
         for row in read_rows(path)
     ]
+
+
+def plot_name(env_id: str, x_axis: str) -> str:
+    """The file name of ``report``'s plot."""
+    stem = env_id.replace("/", "_")
+    return f"{stem}.png" if x_axis == "env_steps" else f"{stem}-{x_axis}.png"
+
+
+def check_regime_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """
+    Refuse a ``--steps-per-gradient`` that does not fit ``--n-envs``, the variants or the step counts, and a
+    ``--vec-env subproc`` that cannot run, with argparse's usage message and exit status 2.
+    """
+    from sb3_dacerf.common.regime import steps_per_gradient_kwargs, transitions_per_rollout
+
+    if args.vec_env == "subproc" and (args.checkpoint_freq or args.workers > 1):
+        parser.error(
+            "--vec-env subproc: its environments run in other processes and cannot be pickled into a checkpoint, and "
+            "the --workers pool's processes cannot start processes: pass --checkpoint-freq 0 and --workers 1 (or use "
+            "--vec-env dummy)"
+        )
+    if args.steps_per_gradient is None:
+        return
+    try:
+        regime = steps_per_gradient_kwargs(args.steps_per_gradient, args.n_envs)
+    except ValueError as error:
+        parser.error(f"--steps-per-gradient / --n-envs: {error}")
+    own = sorted({v for v in args.variants if {"train_freq", "gradient_steps"} & set(VARIANTS.get(v, ("", {}))[1])})
+    if own:
+        parser.error(f"variants {own} set their own gradient steps: leave out --steps-per-gradient, or train them apart")
+    rollout = transitions_per_rollout(args.steps_per_gradient, args.n_envs)
+    counts = (("--timesteps", args.timesteps), ("--checkpoint-freq", args.checkpoint_freq))
+    uneven = [f"{name} {value}" for name, value in counts if value % rollout]
+    if uneven:
+        # learn() stops, and checkpoints are taken, only between rollouts of train_freq * n_envs transitions
+        parser.error(
+            f"{', '.join(uneven)} not a multiple of the {rollout} transitions of a rollout (train_freq "
+            f"{regime['train_freq']} x --n-envs {args.n_envs}): choose multiples of {rollout}"
+        )
 
 
 def main() -> None:
@@ -488,6 +592,25 @@ def main() -> None:
         default=1,
         help="training environments stepped together: N transitions per rollout step, then the variant's gradient "
         "steps (use another --out); --eval-freq and --checkpoint-freq must be multiples of N",
+    )
+    parser.add_argument(
+        "--steps-per-gradient",
+        help="the data regime: S environment steps (transitions) per gradient step, a multiple of --n-envs (the "
+        "paper's sample batch size, 200), or 1/G for G gradient steps per transition (default: one gradient step per "
+        "step of the --n-envs environments); sets train_freq and gradient_steps (use another --out)",
+    )
+    parser.add_argument(
+        "--vec-env",
+        choices=["dummy", "subproc"],
+        default="dummy",
+        help="how the --n-envs environments are stepped: in this process (DummyVecEnv) or one process each "
+        "(SubprocVecEnv, one core each; needs --checkpoint-freq 0 and --workers 1)",
+    )
+    parser.add_argument(
+        "--x-axis",
+        choices=["env_steps", "gradient_steps"],
+        default="env_steps",
+        help="what the plots' x axis counts (gradient_steps: <env>-gradient_steps.png)",
     )
     parser.add_argument(
         "--vec-normalize",
@@ -559,6 +682,7 @@ def main() -> None:
         parser.error(
             "--demonstrator junction drives DACERF-Intersection-v0 and gives --demonstrations: pass both (or leave it out)"
         )
+    check_regime_args(parser, args)
     frequencies = (("--eval-freq", args.eval_freq), ("--checkpoint-freq", args.checkpoint_freq))
     uneven = [f"{name} {value}" for name, value in frequencies if value % args.n_envs]
     if uneven:
@@ -573,8 +697,8 @@ def main() -> None:
         if not rows:
             raise SystemExit(f"No runs of {args.variants} under {folder}: run without --report-only first")
         print(f"\n{args.env}: runs found under {folder}\n")
-        print(report(rows, args.env, out))
-        print(f"\nsaved {out / args.env.replace('/', '_')}.csv and .png")
+        print(report(rows, args.env, out, args.x_axis))
+        print(f"\nsaved {out / args.env.replace('/', '_')}.csv and {plot_name(args.env, args.x_axis)}")
         return
     jobs = [
         dict(
@@ -593,6 +717,8 @@ def main() -> None:
             vec_normalize=args.vec_normalize,
             normalize_reward=args.normalize_reward,
             n_envs=args.n_envs,
+            steps_per_gradient=args.steps_per_gradient,
+            vec_env=args.vec_env,
             demonstrations=args.demonstrations,
             demonstration_fraction=args.demonstration_fraction,
             demonstrator=args.demonstrator,
@@ -615,8 +741,8 @@ def main() -> None:
     others = sorted({path.name.rsplit("-seed", 1)[0] for path in folder.glob("*-seed*.csv")} - set(trained))
     rows = collect_runs(folder, trained + others)
     print(f"\n{args.env}: every run under {folder} (this command: {args.timesteps} steps, {args.seeds} seeds)\n")
-    print(report(rows, args.env, out))
-    print(f"\nsaved {out / args.env.replace('/', '_')}.csv and .png")
+    print(report(rows, args.env, out, args.x_axis))
+    print(f"\nsaved {out / args.env.replace('/', '_')}.csv and {plot_name(args.env, args.x_axis)}")
 
 
 if __name__ == "__main__":

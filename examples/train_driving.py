@@ -31,6 +31,14 @@ regulator on, actor loss weighted by the Langevin gain, lr 3e-4, batch 256, τ =
 the thousands; ``--paper`` selects the
 paper's Table II values (learning rate 1e-4, replay batch 512, RAD, γ = 0.99, τ = 0.001, policy delay 3, Langevin
 η = 0.03, α = 0.01, 20 steps, no added exploration noise). The paper trains 5e5 iterations.
+
+Data regime: by default every step of the ``--n-envs`` environments is followed by one gradient step (``--n-envs``
+transitions per gradient step). ``--steps-per-gradient S`` makes it S transitions per gradient step, as the paper's
+trainer (GOPS) collects its "sample batch size" (200) per iteration: S >= 1 a multiple of ``--n-envs``, or 1/G for G
+gradient steps per transition (``sb3_dacerf.common.regime``; the "Data regime" guide works the paper's table out).
+Progress lines and the final line count both environment steps and gradient steps.
+
+    python examples/train_driving.py --env multilane --timesteps 200000 --steps-per-gradient 20 --n-envs 2 --vec-normalize
 """
 
 from __future__ import annotations
@@ -52,6 +60,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.common.demonstrations import add_scripted_transitions
+from sb3_dacerf.common.regime import steps_per_gradient_kwargs
 from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 from sb3_dacerf.envs.driving.common.observation import vehicle_rows
@@ -74,7 +83,7 @@ class DrivingProgress(BaseCallback):
         self.count, self.start, self.next_print = 0, time.perf_counter(), interval
 
     def _on_training_start(self) -> None:
-        self.first_step, self.start = self.num_timesteps, time.perf_counter()
+        self.first_step, self.first_update, self.start = self.num_timesteps, self.model._n_updates, time.perf_counter()
 
     def _on_step(self) -> bool:
         for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
@@ -86,7 +95,10 @@ class DrivingProgress(BaseCallback):
         steps = self.num_timesteps - self.first_step
         if steps >= self.next_print:
             self.next_print += self.interval
-            line = f"  {steps}/{self.total} steps, {steps / (time.perf_counter() - self.start):.0f} steps/s"
+            seconds = time.perf_counter() - self.start
+            updates = self.model._n_updates - self.first_update
+            line = f"  {steps}/{self.total} steps, {steps / seconds:.0f} steps/s, {updates} gradient steps"
+            line += f" ({updates / seconds:.1f}/s)"
             if self.episodes:
                 r, length, arrived, collided, off_road = np.array(self.episodes, dtype=np.float64).T
                 line += (
@@ -120,6 +132,18 @@ def build_parser() -> argparse.ArgumentParser:
         "tau 0.001, no added exploration noise; SAC gets the same lr, batch and tau) instead of the constructor defaults",
     )
     parser.add_argument("--n-envs", type=int, default=1, help="parallel training envs (SubprocVecEnv when > 1)")
+    parser.add_argument(
+        "--vec-env",
+        choices=["dummy", "subproc"],
+        help="how the --n-envs envs are stepped: in this process (DummyVecEnv) or one process each (SubprocVecEnv, one "
+        "core each); default: subproc when --n-envs > 1",
+    )
+    parser.add_argument(
+        "--steps-per-gradient",
+        help="the data regime: S environment steps (transitions) per gradient step, a multiple of --n-envs (the "
+        "paper's sample batch size, 200), or 1/G for G gradient steps per transition; sets train_freq and "
+        "gradient_steps (default: one gradient step per step of the --n-envs envs; with --load, the saved model's)",
+    )
     parser.add_argument(
         "--vec-normalize",
         nargs="?",
@@ -221,10 +245,16 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
             "--demonstration-targets is DACERF's treatment of the demonstrations kept apart by --demonstration-fraction: "
             "pass --demonstration-fraction too, and leave out --algo sac"
         )
-    if args.demonstrations and (args.n_envs > 1 or args.load):
+    if args.steps_per_gradient is not None:
+        try:
+            steps_per_gradient_kwargs(args.steps_per_gradient, args.n_envs)
+        except ValueError as error:
+            parser.error(f"--steps-per-gradient / --n-envs: {error}")
+    if args.demonstrations and (args.n_envs > 1 or args.load or args.vec_env == "subproc"):
         parser.error(
             "--demonstrations fills the buffer of a new model whose envs run in this process: leave out --load, and "
-            f"use --n-envs 1 (got {args.n_envs}: SubprocVecEnv runs its envs in other processes)"
+            f"use --n-envs 1 and --vec-env dummy (got {args.n_envs}, {args.vec_env or 'default'}: SubprocVecEnv runs its envs "
+            "in other processes)"
         )
 
 
@@ -245,6 +275,8 @@ def algorithm_kwargs(args: argparse.Namespace) -> dict:
         kwargs["replay_buffer_kwargs"] = dict(demonstration_fraction=args.demonstration_fraction)
     if args.demonstration_targets:
         kwargs["demonstration_targets"] = args.demonstration_targets
+    if args.steps_per_gradient is not None:
+        kwargs.update(steps_per_gradient_kwargs(args.steps_per_gradient, args.n_envs))
     return kwargs
 
 
@@ -259,6 +291,7 @@ def main(argv: list[str] | None = None) -> None:
     algo_class = load_algorithm(args.algo)
     algo_kwargs = algorithm_kwargs(args)
 
+    vec_env = args.vec_env or ("subproc" if args.n_envs > 1 else "dummy")
     scenarios = SCENARIOS if args.env in (None, "all") else {args.env: SCENARIOS[args.env]}
     for name, env_id in scenarios.items():
         env_kwargs = {"density": args.density, "config": args.config}
@@ -268,7 +301,7 @@ def main(argv: list[str] | None = None) -> None:
             n_envs=args.n_envs,
             seed=args.seed,
             env_kwargs=env_kwargs,
-            vec_env_cls=SubprocVecEnv if args.n_envs > 1 else DummyVecEnv,
+            vec_env_cls=SubprocVecEnv if vec_env == "subproc" else DummyVecEnv,
         )
         if load_paths and os.path.isfile(load_paths["vec_normalize"]):
             env = VecNormalize.load(load_paths["vec_normalize"], env)
@@ -278,7 +311,9 @@ def main(argv: list[str] | None = None) -> None:
         elif args.vec_normalize:
             env = VecNormalize(env, norm_obs=True, norm_reward=False)
         if load_paths:
-            model = algo_class.load(load_paths["model"], env=env, device="cpu")
+            # --steps-per-gradient replaces the saved model's train_freq and gradient_steps
+            regime = steps_per_gradient_kwargs(args.steps_per_gradient, args.n_envs) if args.steps_per_gradient else {}
+            model = algo_class.load(load_paths["model"], env=env, device="cpu", **regime)
             replay_path = load_paths["model"][:-4] + "_replay_buffer.pkl"
             if os.path.isfile(replay_path):
                 model.load_replay_buffer(replay_path)
@@ -290,11 +325,12 @@ def main(argv: list[str] | None = None) -> None:
         print(
             f"{env_id} ({args.density}), {args.algo}, training {args.timesteps} steps on {args.n_envs} env(s)"
             + (", observations normalised" if isinstance(env, VecNormalize) else "")
-            + (" (MaskedVecNormalize)" if isinstance(env, MaskedVecNormalize) else ""),
+            + (" (MaskedVecNormalize)" if isinstance(env, MaskedVecNormalize) else "")
+            + f", {model.gradient_steps} gradient step(s) every {model.train_freq.frequency * args.n_envs} steps",
             flush=True,
         )
         callback = DrivingProgress(args.timesteps, args.log_interval) if args.log_interval > 0 else None
-        start = time.perf_counter()
+        start, first_update = time.perf_counter(), model._n_updates
         model.learn(args.timesteps, callback=callback, reset_num_timesteps=load_paths is None)
         train_seconds = time.perf_counter() - start
         vec_normalize = env if isinstance(env, VecNormalize) else None
@@ -316,8 +352,8 @@ def main(argv: list[str] | None = None) -> None:
             policy_act(model, vec_normalize), gym.make(env_id, **env_kwargs), args.eval_episodes, seed=10_000 + args.seed
         )
         print(
-            f"trained {model.num_timesteps} steps in total, {train_seconds:.0f} s this run; "
-            + format_results(env_id, results, args.eval_episodes)
+            f"trained {model.num_timesteps} steps in total ({model._n_updates} gradient steps), {train_seconds:.0f} s "
+            f"this run ({model._n_updates - first_update} gradient steps); " + format_results(env_id, results, args.eval_episodes)
         )
         env.close()
 

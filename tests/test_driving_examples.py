@@ -287,6 +287,42 @@ def test_train_resumes_from_a_saved_model(trained, capsys):
     assert "is a sac model: pass --algo sac" in capsys.readouterr().err
 
 
+def test_train_at_steps_per_gradient(trained, tmp_path, capsys):
+    """--steps-per-gradient S: S transitions per gradient step (train_freq S / n_envs); both counts printed."""
+    from stable_baselines3 import SAC
+
+    train = load_example("train_driving")
+    save = str(tmp_path / "regime")
+    args = ["--env", "multilane", "--algo", "sac", "--timesteps", "80", "--learning-starts", "40", "--batch-size", "16"]
+    args += ["--config", json.dumps(SHORT), "--eval-episodes", "1", "--log-interval", "40", "--save", save]
+    train.main([*args, "--steps-per-gradient", "4", "--n-envs", "2", "--vec-env", "dummy"])
+    out = capsys.readouterr().out
+    # rollouts of 2 steps of 2 envs; one gradient step after each that ends beyond 40 transitions: 44, 48, ..., 80
+    assert "training 80 steps on 2 env(s), 1 gradient step(s) every 4 steps" in out
+    # the progress line at 80 steps comes before that rollout's gradient step
+    assert "40/80 steps, " in out and "80/80 steps, " in out and ", 9 gradient steps (" in out
+    assert "trained 80 steps in total (10 gradient steps)" in out
+    model = SAC.load(save + "_multilane.zip")
+    assert (model.train_freq.frequency, model.gradient_steps) == (2, 1)
+    # below 1 transition per gradient step, in other processes; --load takes a new regime
+    train.main(
+        ["--load", trained, "--timesteps", "20", "--eval-episodes", "1", "--log-interval", "0", "--steps-per-gradient", "1/2"]
+    )
+    assert "2 gradient step(s) every 1 steps" in capsys.readouterr().out
+    train.main([*args, "--steps-per-gradient", "2", "--n-envs", "2", "--vec-env", "subproc", "--timesteps", "60"])
+    assert "trained 60 steps in total (10 gradient steps)" in capsys.readouterr().out
+    for regime, message in (
+        (["--steps-per-gradient", "3", "--n-envs", "2"], "3 environment steps per gradient step is not a multiple of n_envs 2"),
+        (["--steps-per-gradient", "0"], "must be positive"),
+    ):
+        with pytest.raises(SystemExit):
+            train.main([*args, *regime])
+        assert message in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        train.main([*args, "--demonstrations", "10", "--vec-env", "subproc"])
+    assert "use --n-envs 1 and --vec-env dummy" in capsys.readouterr().err
+
+
 def test_train_with_demonstrations(tmp_path, capsys):
     """--demonstrations N: N scripted-driver transitions in the new model's buffer, beside its own --timesteps."""
     from stable_baselines3 import SAC

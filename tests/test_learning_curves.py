@@ -1,6 +1,7 @@
 """benchmarks/learning_curves.py: a run stopped and resumed from its checkpoint gives the evaluations of an uninterrupted run."""
 
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -250,3 +251,78 @@ def test_demonstration_fraction_keeps_them_in_their_own_part(tmp_path, learning_
             learning_curves.main()
         assert "pass a share in [0, 1], together with --demonstrations N" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_steps_per_gradient_sets_the_data_regime_and_both_axes(tmp_path, learning_curves, capsys):
+    """--steps-per-gradient 4 with --n-envs 2: two steps of both envs per gradient step; rows carry both axes."""
+    from stable_baselines3 import SAC
+
+    settings = dict(n_envs=2, steps_per_gradient="4", learning_starts=50, eval_freq=100, checkpoint_freq=100)
+    rows = learning_curves.run_one(job(tmp_path, "sac", 200, **settings))
+    # rollouts of 4 transitions; the first gradient step follows the one ending at 52 (> learning_starts), and an
+    # evaluation at 100 or 200 comes before that rollout's own gradient step
+    assert [row["env_steps"] for row in rows] == [row["timesteps"] for row in rows] == [100, 200]
+    assert [row["gradient_steps"] for row in rows] == [(96 - 52) // 4 + 1, (196 - 52) // 4 + 1]
+    folder = learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", "sac", 3)
+    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
+    assert (model.train_freq.frequency, model.gradient_steps, model._n_updates) == (2, 1, 38)
+    # a checkpoint of another regime is not resumed
+    with pytest.raises(SystemExit, match=r"trains with .*'train_freq': 2.* asks for .*'train_freq': 4"):
+        learning_curves.run_one(job(tmp_path, "sac", 300, **{**settings, "steps_per_gradient": "8"}))
+    # below 1: two gradient steps per transition
+    rows = learning_curves.run_one(job(tmp_path / "half", "sac", 100, steps_per_gradient="1/2", learning_starts=50))
+    assert rows[-1]["gradient_steps"] == 2 * (99 - 50)
+
+    learning_curves.report(rows, "Pendulum-v1", tmp_path, "gradient_steps")
+    assert (tmp_path / "Pendulum-v1-gradient_steps.png").exists()
+    old = [{k: v for k, v in row.items() if k not in ("env_steps", "gradient_steps")} for row in rows]
+    table = learning_curves.report(old, "Pendulum-v1", tmp_path)  # runs without the new columns still plot
+    assert "| sac | 1 | 100 | n/a |" in table
+    with pytest.raises(SystemExit, match=r"runs of \['sac'\] have no gradient_steps column"):
+        learning_curves.report(old, "Pendulum-v1", tmp_path, "gradient_steps")
+
+
+def test_subproc_vec_env_steps_the_envs_in_other_processes(tmp_path, learning_curves):
+    settings = dict(n_envs=2, vec_env="subproc", checkpoint_freq=0, steps_per_gradient="2", learning_starts=50)
+    rows = learning_curves.run_one(job(tmp_path, "sac", 100, **settings))
+    assert [(row["env_steps"], row["gradient_steps"]) for row in rows] == [(100, (98 - 52) // 2 + 1)]
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--steps-per-gradient", "10", "--n-envs", "4"], "is not a multiple of n_envs 4"),
+        (["--steps-per-gradient", "0.3"], "below 1 it must be 1/G"),
+        (
+            ["--steps-per-gradient", "3", "--timesteps", "1000"],
+            "--timesteps 1000, --checkpoint-freq 5000 not a multiple of the 3 trans",
+        ),
+        (["--steps-per-gradient", "4", "--variants", "dacerf-utd2"], r"variants \['dacerf-utd2'\] set their own gradient steps"),
+        (["--vec-env", "subproc", "--n-envs", "2"], "pass --checkpoint-freq 0 and --workers 1"),
+    ],
+)
+def test_regime_options_refuse_what_does_not_fit(tmp_path, learning_curves, monkeypatch, capsys, argv, message):
+    monkeypatch.setattr(sys, "argv", ["learning_curves.py", *argv, "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        learning_curves.main()
+    assert re.search(message, capsys.readouterr().err)
+    assert not (tmp_path / "x").exists()
+
+
+def test_data_regime_measures_both_axes(capsys):
+    """benchmarks/data_regime.py: S environment steps per gradient step, counted and timed apart."""
+    spec = importlib.util.spec_from_file_location("data_regime", BENCHMARKS / "data_regime.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    rows = module.main(["--quick", "--variant", "sac", "--steps-per-gradient", "1", "4"])
+    assert [(row["env_steps"], row["gradient_steps"]) for row in rows] == [(40, 40), (160, 40)]
+    for row, steps in zip(rows, (1, 4), strict=True):
+        assert row["budget_env_steps"] == pytest.approx(row["budget_gradient_steps"] * steps)
+    assert "| 4 | 160 | 40 |" in capsys.readouterr().out
+    for argv, message in (
+        (["--variant", "dacerf-utd2"], "sets ['gradient_steps'] itself"),
+        (["--steps-per-gradient", "2.5"], "whole"),
+    ):
+        with pytest.raises(SystemExit):
+            module.main(["--quick", *argv])
+        assert message in capsys.readouterr().err
