@@ -308,6 +308,20 @@ def check_regime(model: Any, job: dict[str, Any], folder: Path) -> None:
         )
 
 
+def paper_kwargs(job: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
+    """
+    ``PAPER_HYPERPARAMETERS`` updated by a variant's own ``kwargs``; without ``--steps-per-gradient``, the paper's 200
+    transitions per gradient step are collected over all the ``--n-envs`` environments.
+    """
+    from sb3_dacerf.common.regime import steps_per_gradient_kwargs
+    from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
+
+    kwargs = {**PAPER_HYPERPARAMETERS, **kwargs}
+    if job.get("steps_per_gradient") is None:
+        kwargs.update(steps_per_gradient_kwargs(PAPER_HYPERPARAMETERS["train_freq"], job.get("n_envs", 1)))
+    return kwargs
+
+
 def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     """
     Train one variant with one seed; return one row per evaluation (read back if the run already finished).
@@ -326,14 +340,13 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     from stable_baselines3.common.callbacks import BaseCallback
 
     import sb3_dacerf  # noqa: F401  (registers the package's environment ids)
-    from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
     th.set_num_threads(1)
     algorithm_name, kwargs = VARIANTS[job["variant"]]
     algorithm = algorithm_class(algorithm_name)
     kwargs = dict(kwargs)
     if kwargs.pop("paper", False):
-        kwargs = {**PAPER_HYPERPARAMETERS, **kwargs}
+        kwargs = paper_kwargs(job, kwargs)
     if job.get("learning_starts") is not None:
         kwargs["learning_starts"] = job["learning_starts"]
     eval_env = gym.make(job["env"], **job["env_kwargs"])

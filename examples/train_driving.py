@@ -129,7 +129,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--paper",
         action="store_true",
         help="the paper's training hyper-parameters (sb3_dacerf.dacerf.PAPER_HYPERPARAMETERS: lr 1e-4, batch 512, RAD, "
-        "tau 0.001, no added exploration noise; SAC gets the same lr, batch and tau) instead of the constructor defaults",
+        "tau 0.001, no added exploration noise, 200 transitions per gradient step over all --n-envs envs unless "
+        "--steps-per-gradient says otherwise; SAC gets the same lr, batch, tau and data regime) instead of the "
+        "constructor defaults",
     )
     parser.add_argument("--n-envs", type=int, default=1, help="parallel training envs (SubprocVecEnv when > 1)")
     parser.add_argument(
@@ -263,8 +265,11 @@ def algorithm_kwargs(args: argparse.Namespace) -> dict:
     values with ``--paper``, and what the other options ask for."""
     kwargs: dict = {}
     if args.paper:
-        shared = ("learning_rate", "batch_size", "tau")  # what SAC takes of the paper's settings
+        # what SAC takes of the paper's settings: its optimiser step, batch, target update and data regime
+        shared = ("learning_rate", "batch_size", "tau", "train_freq", "gradient_steps")
         kwargs = {k: v for k, v in PAPER_HYPERPARAMETERS.items() if args.algo == "dacerf" or k in shared}
+        # the paper's 200 transitions per gradient step, over all the --n-envs environments
+        kwargs.update(steps_per_gradient_kwargs(PAPER_HYPERPARAMETERS["train_freq"], args.n_envs))
     elif args.algo == "dacerf":
         # The RL Zoo setting for the driving scenarios (hyperparams/dacerf.yml): returns in the thousands
         kwargs["langevin_normalize_gradient"] = True

@@ -51,6 +51,9 @@ def test_defaults_and_paper_preset():
     assert (model.ent_coef, model.flow_matching_weights) == ("auto", "gain")
     paper = DACERF("MlpPolicy", "Pendulum-v1", **PAPER_HYPERPARAMETERS)
     assert (paper.tau, paper.learning_rate, paper.batch_size, paper.ent_coef) == (0.001, 1e-4, 512, 0.0)
+    # the paper's λ_f and data regime: 200 transitions collected per gradient step
+    assert paper.flow_matching_weights == "paper"
+    assert (paper.train_freq.frequency, paper.gradient_steps) == (200, 1)
     assert paper.policy.optimizer_class.__name__ == "RAD"
     assert (model.langevin_steps, model.langevin_step_size, model.langevin_temperature) == (20, 0.03, 0.01)
     assert model.actor.n_sampling_steps == 1

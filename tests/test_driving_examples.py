@@ -538,3 +538,16 @@ def test_export_leaves_out_training_only_config(tmp_path, capsys):
     env_id, env_kwargs = export.checkpoint_environment(tmp_path, {"venv": venv}, None, None)
     assert env_id == "DACERF-Intersection-v0" and env_kwargs["config"] == SHORT
     assert "training-only config key(s) ['reference_start_probability'] are left out" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("algo", ["dacerf", "sac"])
+def test_paper_settings_carry_the_papers_data_regime_over_all_envs(algo):
+    """--paper: the paper's 200 transitions per gradient step, counted over all --n-envs envs; --steps-per-gradient wins."""
+    train = load_example("train_driving")
+    parser = train.build_parser()
+    for n_envs, train_freq in [(1, 200), (4, 50)]:
+        kwargs = train.algorithm_kwargs(parser.parse_args(["--algo", algo, "--paper", "--n-envs", str(n_envs)]))
+        assert (kwargs["train_freq"], kwargs["gradient_steps"], kwargs["batch_size"]) == (train_freq, 1, 512)
+    assert ("flow_matching_weights" in kwargs) == (algo == "dacerf")
+    kwargs = train.algorithm_kwargs(parser.parse_args(["--algo", algo, "--paper", "--steps-per-gradient", "8"]))
+    assert (kwargs["train_freq"], kwargs["gradient_steps"]) == (8, 1)

@@ -41,12 +41,12 @@ class DACERF(TwinCriticAlgorithm):
     (see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights` for the alternatives).
     Every Q above is ``min(Q_1, Q_2)``, the same pessimistic estimate as in the Bellman target.
 
-    Entropy regulator (the "ER" of DACER-F, as in DACER): a flow sampled in one Euler step from independent noise
-    tends to a deterministic policy, so stochastic actions get Gaussian noise ``N(0, (0.15 α)²)`` on top, during
-    rollouts and for the next action ``a'`` of the critic target. ``α`` is learned (``ent_coef="auto"``) towards
-    ``target_entropy`` with SAC's temperature loss on an entropy estimate of the noisy policy. Deterministic actions
-    (``predict(..., deterministic=True)``, exported graphs) are noise-free. ``ent_coef=0`` is the paper's exact
-    mechanism (no added noise); :data:`PAPER_HYPERPARAMETERS` holds all of the paper's settings.
+    Entropy regulator (this package's, after DACER's; the DACER-F paper describes none): a flow sampled in one Euler
+    step from independent noise tends to a deterministic policy, so stochastic actions get Gaussian noise
+    ``N(0, (0.15 α)²)`` on top, during rollouts and for the next action ``a'`` of the critic target. ``α`` is learned
+    (``ent_coef="auto"``) towards ``target_entropy`` with SAC's temperature loss on an entropy estimate of the noisy
+    policy. Deterministic actions (``predict(..., deterministic=True)``, exported graphs) are noise-free. ``ent_coef=0``
+    is the paper's exact mechanism (no added noise); :data:`PAPER_HYPERPARAMETERS` holds the settings the paper gives.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
     :param env: The environment to learn from (if registered in Gym, can be str)
@@ -459,9 +459,13 @@ class DACERF(TwinCriticAlgorithm):
         return state_dicts, saved_variables
 
 
-#: The paper's own training hyper-parameters (Table "Training hyper-parameters"), for ``DACERF(..., **PAPER_HYPERPARAMETERS)``:
-#: learning rate 1e-4, replay batch 512, RAD, tau 0.001, policy delay 3, one-step critic targets, no added exploration
-#: noise, 0.1.0's ``λ_f = mean|Q| · g / mean(g)`` and plain MLP critics.
+#: The values the paper gives (its Table "Training hyper-parameters" and ``N_l = 20``), for
+#: ``DACERF(..., **PAPER_HYPERPARAMETERS)``: learning rate 1e-4, replay batch 512, RAD, tau 0.001, policy delay 3,
+#: Langevin 20 x 0.03 at temperature 0.01, one sampling step, no added exploration noise, the paper's weight
+#: ``λ_f = c · ReLU(Q(s, a*) - Q(s, a_B))`` (``"paper"``, ``c = flow_matching_coef = 1``: the paper gives no constant)
+#: and its data regime, 200 transitions collected per gradient step (``train_freq=200`` with one environment; with
+#: ``n_envs`` environments use ``sb3_dacerf.common.regime.steps_per_gradient_kwargs(200, n_envs)``). Not the paper's:
+#: RAD's ``zeta=1e-16`` (the paper gives none; pytorch-rad's default) and plain MLP critics (the paper names none).
 PAPER_HYPERPARAMETERS: dict[str, Any] = dict(
     learning_rate=1e-4,
     batch_size=512,
@@ -473,7 +477,9 @@ PAPER_HYPERPARAMETERS: dict[str, Any] = dict(
     langevin_step_size=0.03,
     langevin_temperature=0.01,
     n_sampling_steps=1,
-    flow_matching_weights="q_scale",
+    flow_matching_weights="paper",
+    train_freq=200,
+    gradient_steps=1,
     ent_coef=0.0,
     policy_kwargs=dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16), critic_layer_norm=False),
 )
