@@ -8,8 +8,9 @@ The paper's two driving scenarios on highway-env (extra ``driving``: ``pip insta
 reset draws the episode's density, see :mod:`sb3_dacerf.envs.driving.density`), ``render_mode`` (``"rgb_array"`` renders
 offscreen) and ``config`` (a dict of overrides of the env's ``default_config()``; every value is checked by type
 and range there). Observation, action and reward are described in :mod:`sb3_dacerf.envs.driving.common`; the
-severe-event penalty is by default the paper's "dynamically calculated" one (``collision_penalty="dynamic"``, see
-:mod:`sb3_dacerf.envs.driving.common.reward`), ``config={"collision_penalty": 200}`` selects the paper's constant.
+severe-event penalty is by default this package's formula for the paper's "or dynamically calculated"
+(``collision_penalty="dynamic"``, see :mod:`sb3_dacerf.envs.driving.common.reward`), ``config={"collision_penalty":
+200}`` selects the paper's constant.
 :class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver` is a scripted baseline driver.
 
 Importing this package registers the ids (``import sb3_dacerf`` does) without importing highway-env:

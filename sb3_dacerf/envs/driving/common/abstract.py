@@ -354,8 +354,9 @@ class PaperDrivingMixin(_HighwayEnv):
         """
         The penalty of a collision or of leaving the road at the current step (positive).
 
-        A number ``collision_penalty`` is used as is (the paper's example: 200). ``"dynamic"`` (the default) is the
-        paper's "dynamically calculated" penalty, tied to what is left of the episode::
+        A number ``collision_penalty`` is used as is (the paper's example: 200). ``"dynamic"`` (the default) is this
+        package's formula for the paper's "or dynamically calculated" (the paper gives none), tied to what is left of
+        the episode::
 
             P = dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left
 
