@@ -15,9 +15,9 @@ Every signed term is in ``info["reward_terms"]``; their sum is the reward:
   the edge);
 - ``collision`` / ``off_road``: minus the severe-event penalty on a collision and on leaving the road, which end
   the episode: by default this package's formula for the paper's "or dynamically calculated" (the paper gives
-  none), ``dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left`` (200 + 21 per step left until the time limit), so that ending the
-  episode early is never worth more than driving on; ``collision_penalty=200`` selects the paper's constant
-  (see ``PaperDrivingMixin._severe_penalty``);
+  none), ``dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left`` (200 + 21 per step left
+  until the time limit), so that ending the episode early is never worth more than driving on;
+  ``collision_penalty=200`` selects the paper's constant (see ``PaperDrivingMixin._severe_penalty``);
 - ``stalled``: the same penalty when the ego has advanced less than ``stall_distance`` along its reference within the
   last ``stall_timeout`` seconds, which ends the episode (off by default: ``stall_timeout=0``).
 
