@@ -172,6 +172,24 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
 
         :return: The critic loss
         """
+        critic_loss = self.critic_loss(replay_data)["loss"]
+        loss = self._checked(critic_loss, "critic loss", replay_data)
+
+        self.critic.optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic.optimizer.step()
+        return loss
+
+    def critic_loss(self, replay_data: ReplayBufferSamples) -> dict[str, th.Tensor]:
+        """
+        The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` on a replay batch, with the Bellman target
+        ``y = r + γ (1 - done) min_j Q̄_j(s', a')``, ``a' ~ π(·|s')`` (the critics themselves instead of the targets
+        with CrossQ's critics, whose running statistics this pass updates).
+
+        :param replay_data: A batch of the replay buffer
+        :return: ``loss`` (differentiable with respect to the critics), ``target_q_values`` ``y`` ``(batch, 1)`` and
+            ``current_q_values`` ``(n_critics, batch, 1)`` (detached)
+        """
         # For n-step replay, discount factor is gamma**n_steps (when no early termination)
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         with th.no_grad():
@@ -200,12 +218,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
 
         # 0.5 * sum_j mean((Q_j - y)^2): every critic's MSE, from the stacked Q-values in one pass
         critic_loss = 0.5 * (current_q_values - target_q_values).pow(2).mean(dim=(1, 2)).sum()
-        loss = self._checked(critic_loss, "critic loss", replay_data)
-
-        self.critic.optimizer.zero_grad()
-        critic_loss.backward()
-        self.critic.optimizer.step()
-        return loss
+        return dict(loss=critic_loss, target_q_values=target_q_values, current_q_values=current_q_values.detach())
 
     def _update_targets(self) -> None:
         """Polyak update of the target critics: ``Q̄ <- (1 - τ) Q̄ + τ Q`` (none with CrossQ's critics)."""
