@@ -18,8 +18,6 @@ from torch import nn
 from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleCritic, LayerNormCritic
 from sb3_dacerf.common.optim import get_optimizer_class
 
-__all__ = ["BatchRenormCritic", "EnsembleCritic", "GenerativeActor", "LayerNormCritic", "TwinCriticPolicy"]
-
 
 class GenerativeActor(BasePolicy, ABC):
     """
