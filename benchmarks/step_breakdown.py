@@ -15,6 +15,7 @@ Two measurements, both on one torch thread (``--threads``):
 ``iteration_time.py`` imports both; run this file for them alone::
 
     python benchmarks/step_breakdown.py [--updates 1000] [--blocks 10] [--block 400] [--clock wall|cpu] [--skip-learn]
+                                        [--skip-breakdown] [--envs ...] [--algorithms DACERF DACER SAC]
 """
 
 from __future__ import annotations
@@ -157,6 +158,7 @@ def main() -> None:
     parser.add_argument("--blocks", type=int, default=10, help="timed blocks of learn() per algorithm and environment")
     parser.add_argument("--block", type=int, default=400, help="environment steps per block")
     parser.add_argument("--envs", nargs="+", default=list(LEARN_ENVS))
+    parser.add_argument("--algorithms", nargs="+", default=list(PARTS), choices=list(PARTS), help="for the breakdown")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--clock", default="wall", choices=list(CLOCKS))
     parser.add_argument("--skip-learn", action="store_true", help="the breakdown only")
@@ -172,8 +174,7 @@ def main() -> None:
     if not args.skip_breakdown:
         print(f"Breakdown of a gradient step (humanoid 67/24 sizes, batch 256, {args.updates} steps under cProfile):\n")
         results = {
-            name: breakdown(ready_to_train(name, 67, 24, "cpu"), name, args.updates, clock=args.clock)
-            for name in ("DACERF", "DACER", "SAC")
+            name: breakdown(ready_to_train(name, 67, 24, "cpu"), name, args.updates, clock=args.clock) for name in args.algorithms
         }
         print_breakdown(results)
         print()
