@@ -13,13 +13,20 @@ DACER's entropy estimate (a Gaussian mixture fitted to 200 actions per state of 
 updates) is timed apart and given amortised. Spaces as in ``inference_latency.py``; the replay buffer holds random
 transitions.
 
+After the grid, the script prints where a gradient step's time goes (``step_breakdown.breakdown``: DACERF, DACER
+and SAC, 1,000 steps under cProfile at humanoid sizes, batch 256; ``--breakdown-updates 0`` skips it) and the cost of
+``learn()`` per environment step, DACERF against SAC, each with its constructor defaults, on Pendulum-v1 and DMC
+walker-walk, in alternating blocks of 400 steps in this process (``step_breakdown.learn_ratio``;
+``--learn-blocks 0`` skips it). ``--skip-grid`` prints these two only.
+
 ``--compile`` adds "DACERF compiled": DACERF with ``compile_langevin=True`` (the Langevin loop through
 ``torch.compile``; the compilation, ~30 s per size and batch on a CPU, happens in the warm-up and is not timed).
 
 Usage::
 
     python benchmarks/iteration_time.py [--quick] [--compile] [--device cpu|cuda] [--threads 1] [--clock wall|cpu] [--rounds 40]
-                                        [--sizes ...] [--batch-sizes 256 512]
+                                        [--sizes ...] [--batch-sizes 256 512] [--skip-grid] [--breakdown-updates 1000]
+                                        [--learn-blocks 10]
 """
 
 import argparse
@@ -34,6 +41,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.logger import Logger
+from step_breakdown import LEARN_ENVS, breakdown, learn_ratio, print_breakdown
 from timing import (
     CLOCKS,
     CONFIGURATIONS,
@@ -50,6 +58,7 @@ from timing import (
 
 from sb3_dacerf import DACER
 
+LEARN_BLOCK = 400  # environment steps per timed learn() block
 GRADIENT_STEPS = 6  # a multiple of DACERF's policy delay (3) and DACER's (2)
 BUFFER_SIZE = 10_000
 COMPILED = "DACERF compiled"
@@ -130,6 +139,11 @@ def main() -> None:
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES), metavar="SIZE", help=f"of {list(SIZES)}")
     parser.add_argument("--compile", action="store_true", help="also time DACERF with compile_langevin=True")
+    parser.add_argument("--skip-grid", action="store_true", help="only the breakdown and the learn() ratios")
+    parser.add_argument("--breakdown-updates", type=int, default=1000, help="gradient steps profiled per algorithm (0: none)")
+    parser.add_argument(
+        "--learn-blocks", type=int, default=10, help="timed learn() blocks per algorithm and environment (0: none)"
+    )
     add_common_arguments(parser, plot="iteration_time.png")
     args = parser.parse_args()
     apply_common_arguments(parser, args, plot="iteration_time.png")
@@ -143,6 +157,40 @@ def main() -> None:
         f"net_arch {NET_ARCH}; {load_average()} at start"
     )
     print(header, flush=True)
+    if not args.skip_grid:
+        grid(args, names, dacerfs, rounds, batch_sizes, header)
+    if args.breakdown_updates > 0:
+        print(f"\nBreakdown of a gradient step (humanoid 67/24, batch 256, {args.breakdown_updates} steps under cProfile):\n")
+        print_breakdown(
+            {
+                name: breakdown(
+                    ready_to_train(name, *SIZES["humanoid 67/24"], args.device), name, args.breakdown_updates, clock=args.clock
+                )
+                for name in ("DACERF", "DACER", "SAC")
+            }
+        )
+    if args.learn_blocks > 0:
+        print(
+            f"\nlearn() per environment step, each algorithm's defaults ({args.learn_blocks} alternating blocks of "
+            f"{LEARN_BLOCK} steps):\n"
+        )
+        print("| environment | DACERF (ms/step) | SAC (ms/step) | DACERF / SAC |")
+        print("|---|---|---|---|")
+        ratios = {}
+        for env_id in LEARN_ENVS:
+            medians = learn_ratio(env_id, args.learn_blocks, LEARN_BLOCK, args.clock)
+            ratios[env_id] = medians["DACERF"] / medians["SAC"]
+            dacerf, sac = 1e3 * medians["DACERF"], 1e3 * medians["SAC"]
+            print(f"| {env_id} | {dacerf:.2f} | {sac:.2f} | {ratios[env_id]:.2f} |", flush=True)
+        for env_id, ratio in ratios.items():
+            met, stretch = verdict(ratio <= 1.5), verdict(ratio <= 1.3)
+            print(f"- {env_id}: DACERF / SAC = {ratio:.2f} (≤ 1.5: {met}; stretch ≤ 1.3: {stretch})")
+
+
+def grid(
+    args: argparse.Namespace, names: list[str], dacerfs: list[str], rounds: int, batch_sizes: list[int], header: str
+) -> None:
+    """The time per gradient step of every configuration, size and batch size: tables, verdicts and the plot."""
     results = {
         (size, batch_size): measure(*SIZES[size], batch_size, args.device, rounds, names, args.clock)
         for size in args.sizes

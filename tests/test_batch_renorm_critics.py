@@ -4,14 +4,13 @@ import pytest
 import torch as th
 
 from sb3_dacerf import DACER, DACERF
-from sb3_dacerf.common.policies import BatchRenormCritic
-from sb3_dacerf.common.utils import is_batch_renorm
+from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleBatchRenorm
 
 pytest.importorskip("sb3_contrib")
 
 
 def batch_renorm_layers(critic: th.nn.Module) -> list[th.nn.Module]:
-    return [module for module in critic.modules() if is_batch_renorm(module)]
+    return [module for module in critic.modules() if isinstance(module, EnsembleBatchRenorm)]
 
 
 @pytest.fixture(params=[DACERF, DACER])
@@ -25,8 +24,8 @@ def test_critics_learn_without_targets_and_update_statistics_once_per_critic_upd
         fast["policy_kwargs"]["critic_layer_norm"] = False
     model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
     assert isinstance(model.critic, BatchRenormCritic)
-    # one layer before each of the three linear layers of each of the two critics
-    assert len(batch_renorm_layers(model.critic)) == 6
+    # one layer before each of the three linear layers, holding the statistics of both critics
+    assert [layer.ra_mean.shape[0] for layer in batch_renorm_layers(model.critic)] == [2, 2, 2]
     target_before = {name: value.clone() for name, value in model.critic_target.state_dict().items()}
     critic_before = [param.clone() for param in model.critic.parameters()]
     model.learn(200)

@@ -15,11 +15,10 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import BitFlippingEnv, SimpleMultiObsEnv
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
-from stable_baselines3.common.policies import ContinuousCritic
 
 from sb3_dacerf import DACERF
+from sb3_dacerf.common.ensemble import EnsembleCritic, EnsembleLinear, LayerNormCritic
 from sb3_dacerf.common.langevin import MinQActionGradient, langevin_targets
-from sb3_dacerf.common.policies import LayerNormCritic
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 
 
@@ -62,9 +61,9 @@ def test_defaults_and_paper_preset():
     # LayerNorm critics by default, SB3's MLP critics in the paper preset or on request
     assert model.policy_kwargs["critic_layer_norm"] is True
     assert isinstance(model.critic, LayerNormCritic) and isinstance(model.critic_target, LayerNormCritic)
-    assert type(paper.critic) is ContinuousCritic
+    assert type(paper.critic) is EnsembleCritic
     mlp = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=False))
-    assert type(mlp.critic) is ContinuousCritic and type(mlp.critic_target) is ContinuousCritic
+    assert type(mlp.critic) is EnsembleCritic and type(mlp.critic_target) is EnsembleCritic
 
 
 def test_n_step_returns_are_saved_and_loaded_without_sb3_warning_they_are_ignored(tmp_path, recwarn):
@@ -87,7 +86,7 @@ def test_a_model_saved_without_the_critic_setting_loads_with_mlp_critics(tmp_pat
     del model.policy_kwargs["critic_layer_norm"]
     model.save(tmp_path / "old")
     loaded = DACERF.load(tmp_path / "old")
-    assert type(loaded.critic) is ContinuousCritic and "critic_layer_norm" not in loaded.policy_kwargs
+    assert type(loaded.critic) is EnsembleCritic and "critic_layer_norm" not in loaded.policy_kwargs
     for name, value in model.policy.state_dict().items():
         assert th.equal(value, loaded.policy.state_dict()[name]), name
     # and a model saved now keeps its LayerNorm critics
@@ -146,7 +145,7 @@ def test_shared_features_extractor_and_separate_net_arch():
     )
     assert model.critic.features_extractor is model.actor.features_extractor
     assert [m.out_features for m in model.actor.network if isinstance(m, th.nn.Linear)] == [16, 1]
-    assert [m.out_features for m in model.critic.qf0 if isinstance(m, th.nn.Linear)] == [24, 24, 1]
+    assert [m.out_features for m in model.critic.ensemble if isinstance(m, EnsembleLinear)] == [24, 24, 1]
     model.learn(100)
 
 
@@ -282,8 +281,7 @@ def test_langevin_targets_method_follows_the_model_settings_and_leaves_the_criti
     batch = model.replay_buffer.sample(64)
     observations, actions = batch.observations, batch.actions
     with th.no_grad():  # steep critics, so that normalising the gradient changes the targets
-        for q_network in model.critic.q_networks:
-            q_network[-1].weight.mul_(1e3)
+        model.critic.ensemble[-1].weight.mul_(1e3)
     model.critic.optimizer.zero_grad(set_to_none=True)
     th.manual_seed(1)
     targets = model.langevin_targets(observations, actions)

@@ -2,13 +2,12 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
 
+from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleBatchRenorm, EnsembleCritic, EnsembleLayerNorm, LayerNormCritic
 from sb3_dacerf.common.langevin import MinQActionGradient, autograd_action_gradient, langevin_targets
-from sb3_dacerf.common.policies import BatchRenormCritic, LayerNormCritic
-from sb3_dacerf.common.utils import frozen, is_batch_renorm
+from sb3_dacerf.common.utils import frozen
 
 
 def quadratic_q(mean: th.Tensor):
@@ -111,7 +110,7 @@ def make_critic(
 ):
     observation_space = gym.spaces.Box(-1, 1, (observation_dim,))
     action_space = gym.spaces.Box(-1, 1, (action_dim,))
-    critic_class = LayerNormCritic if layer_norm else BatchRenormCritic if batch_renorm else ContinuousCritic
+    critic_class = LayerNormCritic if layer_norm else BatchRenormCritic if batch_renorm else EnsembleCritic
     return critic_class(
         observation_space,
         action_space,
@@ -140,10 +139,10 @@ def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics, n
         batch_renorm=normalisation is not None and normalisation.startswith("batch_renorm"),
     )
     for module in critic.modules():
-        if isinstance(module, nn.LayerNorm):  # away from LayerNorm's initial γ = 1, β = 0
+        if isinstance(module, EnsembleLayerNorm):  # away from LayerNorm's initial γ = 1, β = 0
             nn.init.normal_(module.weight, 1.0, 0.3)
             nn.init.normal_(module.bias, 0.0, 0.3)
-        if is_batch_renorm(module):  # and from batch renormalisation's initial statistics
+        if isinstance(module, EnsembleBatchRenorm):  # and from batch renormalisation's initial statistics
             nn.init.normal_(module.scale, 1.0, 0.3)
             nn.init.normal_(module.bias, 0.0, 0.3)
             module.ra_mean.normal_(0.0, 0.5)
@@ -160,6 +159,9 @@ def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics, n
     with frozen(critic.parameters()):
         expected = autograd_action_gradient(min_q)(actions)
         assert th.allclose(gradient(actions), expected, atol=1e-6)
+        # the first call kept min_j Q_j at its actions, and a forward pass alone gives the same values
+        assert th.allclose(gradient.start_min_q, min_q(actions), atol=1e-6)
+        assert th.allclose(gradient.min_q(actions), min_q(actions), atol=1e-6)
         # and the whole loop, with the same noise
         th.manual_seed(4)
         targets = langevin_targets(gradient, actions, 20, 0.03, 0.01)

@@ -23,7 +23,7 @@ import rl_zoo3.hyperparams_opt  # noqa: E402
 import rl_zoo3.utils  # noqa: E402
 
 from sb3_dacerf import DACER, DACERF  # noqa: E402
-from sb3_dacerf.common.policies import BatchRenormCritic  # noqa: E402
+from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleLayerNorm  # noqa: E402
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS  # noqa: E402
 from sb3_dacerf.envs.dmc import DMC_ENV_IDS  # noqa: E402
 from sb3_dacerf.zoo import (  # noqa: E402
@@ -186,7 +186,7 @@ def test_sampler_builds_dacerf():
         model = DACERF("MlpPolicy", "Pendulum-v1", **hyperparams)
         critics = trial.params["critics"]
         assert hyperparams["policy_kwargs"]["critic_layer_norm"] == (critics == "layer_norm")
-        assert any(isinstance(m, th.nn.LayerNorm) for m in model.critic.modules()) == (critics == "layer_norm")
+        assert any(isinstance(m, EnsembleLayerNorm) for m in model.critic.modules()) == (critics == "layer_norm")
         assert isinstance(model.critic, BatchRenormCritic) == (critics == "batch_renorm")
         assert model.ent_coef == hyperparams["ent_coef"] and hyperparams["ent_coef"] in ("auto", 0.0)
         assert model.langevin_normalize_gradient == hyperparams["langevin_normalize_gradient"]

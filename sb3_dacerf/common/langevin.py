@@ -2,14 +2,13 @@
 
 import functools
 from collections.abc import Callable
+from typing import Any
 
 import torch as th
-from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
-from torch.nn.utils import skip_init
 
-from sb3_dacerf.common.utils import is_batch_renorm
+from sb3_dacerf.common.ensemble import EnsembleBatchRenorm, EnsembleCritic, EnsembleLayerNorm, EnsembleLinear
 
 
 def langevin_targets(
@@ -87,156 +86,168 @@ _ACTIVATION_BACKWARDS: dict[type[nn.Module], Callable[[nn.Module, th.Tensor, th.
 }
 
 
-def _layer_norm_forward(norm: nn.LayerNorm, z: th.Tensor) -> tuple[th.Tensor, tuple[th.Tensor, th.Tensor, th.Tensor]]:
-    """``LayerNorm`` with autograd's own kernel, also returning what its backward kernel needs (input, mean, 1/σ)."""
-    y, mean, inv_std = th.native_layer_norm(z, norm.normalized_shape, norm.weight, norm.bias, norm.eps)
-    return y, (z, mean, inv_std)
+# A hidden block of a written-out critic: (weight (n, in, out), bias (n, out), LayerNorm or None, activation)
+_Block = tuple[th.Tensor, th.Tensor, EnsembleLayerNorm | None, nn.Module]
 
 
-def _layer_norm_backward(norm: nn.LayerNorm, grad: th.Tensor, cache: tuple[th.Tensor, th.Tensor, th.Tensor]) -> th.Tensor:
-    """dQ/dz from dQ/dy of ``y = LayerNorm(z)``, with autograd's own kernel."""
+def _layer_norm_forward(norm: EnsembleLayerNorm, z: th.Tensor) -> tuple[th.Tensor, tuple[th.Tensor, th.Tensor, th.Tensor]]:
+    """The ensemble ``LayerNorm`` with autograd's own kernel, also returning what its backward needs (input, mean, 1/σ)."""
+    normalised, mean, inv_std = th.native_layer_norm(z, (norm.num_features,), None, None, norm.eps)
+    return th.addcmul(norm.bias.unsqueeze(1), normalised, norm.weight.unsqueeze(1)), (z, mean, inv_std)
+
+
+def _layer_norm_backward(norm: EnsembleLayerNorm, grad: th.Tensor, cache: tuple[th.Tensor, th.Tensor, th.Tensor]) -> th.Tensor:
+    """dQ/dz from dQ/dy of ``y = LayerNorm(z)`` (per-member affine), with autograd's own kernel."""
     z, mean, inv_std = cache
     return th.ops.aten.native_layer_norm_backward(
-        grad, z, norm.normalized_shape, mean, inv_std, norm.weight, norm.bias, [True, False, False]
+        grad * norm.weight.unsqueeze(1), z, (norm.num_features,), mean, inv_std, None, None, [True, False, False]
     )[0]
 
 
 class MinQActionGradient:
     """
-    ``∇_a min_j Q_j(s, a)`` of SB3 twin critics (``ContinuousCritic``) at fixed states ``s``.
+    ``∇_a min_j Q_j(s, a)`` of ensemble critics (:class:`~sb3_dacerf.common.ensemble.EnsembleCritic`) at fixed
+    states ``s``.
 
-    Built once per batch of states: the features, and each critic's first-layer contribution of the state, are
-    computed once instead of at every Langevin step. For the critics SB3 builds (MLPs of ``Linear`` layers with
-    ReLU, LeakyReLU or Tanh between them, optionally a ``LayerNorm`` after each hidden ``Linear`` as in
-    :class:`sb3_dacerf.common.policies.LayerNormCritic`, or a batch renormalisation in running-statistics mode
-    before each ``Linear`` as in :class:`sb3_dacerf.common.policies.BatchRenormCritic`, folded into that ``Linear``)
-    the gradient is written out (forward pass, then the chain
-    rule through the same weights) without building an autograd graph: the same numbers as autograd, faster, and
-    ``torch.compile`` can fuse it. Other critic networks fall back to autograd on the cached features.
-    Per sample, the gradient is that of the critic with the smallest Q (as autograd routes it through ``min``).
+    Built once per batch of states: the features, and every critic's first-layer contribution of the state, are
+    computed once instead of at every Langevin step. For the critics this package builds (ensemble ``Linear`` layers
+    with ReLU, LeakyReLU or Tanh between them, optionally a ``LayerNorm`` after each hidden layer as in
+    :class:`~sb3_dacerf.common.ensemble.LayerNormCritic`, or a batch renormalisation in running-statistics mode before
+    each layer as in :class:`~sb3_dacerf.common.ensemble.BatchRenormCritic`, folded into that layer) the gradient is
+    written out (forward pass, then the chain rule through the same weights, all the critics in one batched product
+    per layer) without building an autograd graph: the same numbers as autograd, faster, and ``torch.compile`` can
+    fuse it. Other critics (other activations, an SB3 ``ContinuousCritic``) fall back to autograd on the cached
+    features. Per sample, the gradient is that of the critic with the smallest Q (as autograd routes it through
+    ``min``).
 
-    :param critic: Twin critics ``Q_j(s, a) = q_networks[j](concat(features(s), a))``
+    The first call also keeps ``min_j Q_j`` at the actions it was given in :attr:`start_min_q`: the Langevin loop's
+    first call is at its starting actions, whose Q-values are then known without another pass.
+
+    :param critic: The critics ``Q_j(s, a)``, an ``EnsembleCritic`` (or any critic with SB3's ``q_networks``)
     :param observations: The fixed states ``s``, a batch
     """
 
-    def __init__(self, critic: ContinuousCritic, observations: PyTorchObs):
+    def __init__(self, critic: Any, observations: PyTorchObs):
+        self.critic = critic
+        #: ``min_j Q_j(s, a)`` at the actions of the first call, ``(batch, 1)``, detached (``None`` before it)
+        self.start_min_q: th.Tensor | None = None
         with th.no_grad():
             self.features = critic.extract_features(observations, critic.features_extractor)
-        self.q_networks = list(critic.q_networks)
-        layers = [_hidden_blocks(_fold_normalisation(q_net)) for q_net in self.q_networks]
-        written_out = [layer for layer in layers if layer is not None]
-        self.written_out = len(written_out) == len(layers)
-        if self.written_out:
-            n_features = self.features.shape[1]
-            self.networks = []
+        plan = _written_out_plan(critic) if isinstance(critic, EnsembleCritic) else None
+        self.written_out = plan is not None
+        if plan is not None:
+            self.blocks, (self.output_weight, self.output_bias) = plan
+            first_weight, first_bias = self.blocks[0][0], self.blocks[0][1]
+            n_members, n_features = first_weight.shape[0], self.features.shape[1]
             with th.no_grad():
-                for blocks, output in written_out:
-                    first = blocks[0][0]
-                    # W [s; a] + b = (W_s s + b) + W_a a: the state part is the same at every Langevin step
-                    state_part = self.features @ first.weight[:, :n_features].t()
-                    if first.bias is not None:
-                        state_part += first.bias
-                    self.networks.append((state_part, first.weight[:, n_features:], blocks, output))
+                # W [s; a] + b = (W_s s + b) + W_a a: the state part is the same at every Langevin step
+                self.state_part = th.baddbmm(
+                    first_bias.unsqueeze(1), self.features.expand(n_members, *self.features.shape), first_weight[:, :n_features]
+                )
+            self.action_weight = first_weight[:, n_features:]
 
     def __call__(self, actions: th.Tensor) -> th.Tensor:
         if not self.written_out:
-            return autograd_action_gradient(self._min_q)(actions)
+            with th.enable_grad():
+                actions = actions.detach().requires_grad_(True)
+                min_q = self._autograd_min_q(actions)
+                (gradient,) = th.autograd.grad(min_q.sum(), actions)
+            self._keep_start(min_q.detach())
+            return gradient
         with th.no_grad():
-            q_values, gradients = [], []
-            for state_part, action_weight, blocks, output in self.networks:
-                # Forward pass through the hidden blocks (Linear, [LayerNorm], activation), keeping what the
-                # backward pass needs
-                saved = []
-                hidden = None
-                for index, (linear, norm, activation) in enumerate(blocks):
-                    z = th.addmm(state_part, actions, action_weight.t()) if index == 0 else linear(hidden)
-                    norm_cache = None
-                    if norm is not None:
-                        z, norm_cache = _layer_norm_forward(norm, z)
-                    saved.append((z, norm_cache))
-                    hidden = activation(z)
-                q_values.append(output(hidden))
-                # Backward pass: from the output layer down to the action input
-                gradient = output.weight.expand(actions.shape[0], -1)
-                for index in range(len(blocks) - 1, -1, -1):
-                    linear, norm, activation = blocks[index]
-                    z, norm_cache = saved[index]
-                    gradient = _ACTIVATION_BACKWARDS[type(activation)](activation, gradient, z)
-                    if norm is not None and norm_cache is not None:  # both or neither
-                        gradient = _layer_norm_backward(norm, gradient, norm_cache)
-                    gradient = gradient @ (action_weight if index == 0 else linear.weight)
-                gradients.append(gradient)
+            q_values, saved = self._forward(actions)
+            n_members, batch = q_values.shape[0], actions.shape[0]
+            # Backward pass: from the output layer down to the action input
+            gradient = self.output_weight.transpose(1, 2).expand(n_members, batch, -1)
+            for index in range(len(self.blocks) - 1, -1, -1):
+                weight, _, norm, activation = self.blocks[index]
+                z, norm_cache = saved[index]
+                gradient = _ACTIVATION_BACKWARDS[type(activation)](activation, gradient, z)
+                if norm is not None and norm_cache is not None:  # both or neither
+                    gradient = _layer_norm_backward(norm, gradient, norm_cache)
+                gradient = th.bmm(gradient, (self.action_weight if index == 0 else weight).transpose(1, 2))
+            self._keep_start(q_values.min(dim=0).values)
             # The gradient of the smallest Q, per sample (the first one on ties, as autograd through th.min)
-            if len(gradients) == 2:
-                return th.where(q_values[0] <= q_values[1], gradients[0], gradients[1])
-            smallest = th.stack(q_values).argmin(dim=0, keepdim=True)  # (1, batch, 1)
-            stacked = th.stack(gradients)  # (n_critics, batch, action_dim)
-            return stacked.gather(0, smallest.expand(1, *stacked.shape[1:])).squeeze(0)
+            if n_members == 2:
+                return th.where(q_values[0] <= q_values[1], gradient[0], gradient[1])
+            smallest = q_values.argmin(dim=0, keepdim=True)  # (1, batch, 1)
+            return gradient.gather(0, smallest.expand(1, *gradient.shape[1:])).squeeze(0)
 
-    def _min_q(self, actions: th.Tensor) -> th.Tensor:
+    def min_q(self, actions: th.Tensor) -> th.Tensor:
+        """``min_j Q_j(s, a)`` at the fixed states, ``(batch, 1)``, without gradient (one forward pass)."""
+        with th.no_grad():
+            if not self.written_out:
+                return self._autograd_min_q(actions)
+            return self._forward(actions)[0].min(dim=0).values
+
+    def _keep_start(self, min_q: th.Tensor) -> None:
+        if self.start_min_q is None:
+            self.start_min_q = min_q
+
+    def _forward(self, actions: th.Tensor) -> tuple[th.Tensor, list[tuple[th.Tensor, Any]]]:
+        """Every critic's Q ``(n_critics, batch, 1)`` through the hidden blocks, and what the backward pass needs."""
+        saved = []
+        hidden = actions
+        for index, (weight, bias, norm, activation) in enumerate(self.blocks):
+            if index == 0:
+                z = th.baddbmm(self.state_part, actions.expand(self.state_part.shape[0], *actions.shape), self.action_weight)
+            else:
+                z = th.baddbmm(bias.unsqueeze(1), hidden, weight)
+            norm_cache = None
+            if norm is not None:
+                z, norm_cache = _layer_norm_forward(norm, z)
+            saved.append((z, norm_cache))
+            hidden = activation(z)
+        return th.baddbmm(self.output_bias.unsqueeze(1), hidden, self.output_weight), saved
+
+    def _autograd_min_q(self, actions: th.Tensor) -> th.Tensor:
+        if isinstance(self.critic, EnsembleCritic):
+            return self.critic.q_values_of_features(self.features, actions).min(dim=0).values
         inputs = th.cat([self.features, actions], dim=1)
-        return th.min(th.cat([q_net(inputs) for q_net in self.q_networks], dim=1), dim=1, keepdim=True).values
+        return th.min(th.cat([q_net(inputs) for q_net in self.critic.q_networks], dim=1), dim=1, keepdim=True).values
 
 
-def _fold_normalisation(network: nn.Module) -> nn.Module:
+def _written_out_plan(critic: EnsembleCritic) -> tuple[list[_Block], tuple[th.Tensor, th.Tensor]] | None:
     """
-    ``network`` with each batch renormalisation in running-statistics mode folded into the ``Linear`` after it (in
-    that mode it is the affine map ``scale · (x - mean) / sqrt(var + eps) + bias``): new layers, the same function.
-    ``network`` itself when it has none, or one in training mode, or one not followed by a ``Linear``.
+    The hidden blocks and the output layer ``(weight, bias)`` of ``critic.ensemble`` when it is
+    ``[BatchRenorm] Linear [LayerNorm] activation ... [BatchRenorm] Linear(·, 1)`` with written-out activations and
+    any batch renormalisation in running-statistics mode (folded into the next layer: in that mode it is the affine
+    map ``gain · x + shift``), else None.
     """
-    if not isinstance(network, nn.Sequential) or not any(is_batch_renorm(module) for module in network):
-        return network
-    modules = list(network)
-    folded: list[nn.Module] = []
+    blocks: list[_Block] = []
+    pending: tuple[th.Tensor, th.Tensor] | None = None  # the folded batch renormalisation before the next Linear
+    modules = list(critic.ensemble)
     index = 0
+    output: tuple[th.Tensor, th.Tensor] | None = None
     while index < len(modules):
         module = modules[index]
-        if not is_batch_renorm(module):
-            folded.append(module)
+        if isinstance(module, EnsembleBatchRenorm):
+            if module.training or pending is not None:
+                return None
+            with th.no_grad():
+                pending = module.normalisation()
             index += 1
             continue
-        linear = modules[index + 1] if index + 1 < len(modules) else None
-        if module.training or not module.affine or not isinstance(linear, nn.Linear):
-            return network
-        with th.no_grad():
-            scale, bias, mean, var, eps = (getattr(module, name) for name in ("scale", "bias", "ra_mean", "ra_var", "eps"))
-            gain = scale / (var + eps).sqrt()
-            shift = bias - gain * mean
-            # This runs at every actor update: skip the random initialisation that the copies below overwrite
-            weight = linear.weight
-            merged = skip_init(nn.Linear, linear.in_features, linear.out_features, device=weight.device, dtype=weight.dtype)
-            merged.weight.copy_(weight * gain)
-            merged.bias.copy_(weight @ shift + (linear.bias if linear.bias is not None else 0.0))
-        folded.append(merged)
-        index += 2
-    return nn.Sequential(*folded)
-
-
-def _hidden_blocks(network: nn.Module) -> tuple[list[tuple[nn.Linear, nn.LayerNorm | None, nn.Module]], nn.Linear] | None:
-    """
-    The hidden blocks ``(Linear, LayerNorm or None, activation)`` and the output layer of
-    ``Linear, [LayerNorm], act, ..., Linear, [LayerNorm], act, Linear(·, 1)``, or None when ``network`` is anything else.
-    """
-    if not isinstance(network, nn.Sequential):
-        return None
-    modules = list(network)
-    blocks: list[tuple[nn.Linear, nn.LayerNorm | None, nn.Module]] = []
-    index = 0
-    while index < len(modules) - 1:
-        linear = modules[index]
-        following = modules[index + 1] if index + 1 < len(modules) else None
-        norm = following if type(following) is nn.LayerNorm else None
+        if not isinstance(module, EnsembleLinear):
+            return None
+        weight: th.Tensor = module.weight
+        bias: th.Tensor = module.bias
+        if pending is not None:
+            gain, shift = pending
+            with th.no_grad():
+                weight, bias = weight * gain.unsqueeze(2), th.baddbmm(bias.unsqueeze(1), shift.unsqueeze(1), weight).squeeze(1)
+            pending = None
+        if index == len(modules) - 1:
+            if module.out_features != 1:
+                return None
+            output = (weight, bias)
+            break
+        norm = modules[index + 1] if isinstance(modules[index + 1], EnsembleLayerNorm) else None
         position = index + (2 if norm is not None else 1)
-        if position >= len(modules) or type(linear) is not nn.Linear:
+        if position >= len(modules) or type(modules[position]) not in _ACTIVATION_BACKWARDS:
             return None
-        activation = modules[position]
-        if type(activation) not in _ACTIVATION_BACKWARDS:
-            return None
-        if norm is not None and len(norm.normalized_shape) != 1:
-            return None
-        blocks.append((linear, norm, activation))
+        blocks.append((weight, bias, norm, modules[position]))  # type: ignore[arg-type]
         index = position + 1
-    output = modules[-1] if modules else None
-    if not blocks or index != len(modules) - 1 or type(output) is not nn.Linear or output.out_features != 1:
+    if output is None or not blocks:
         return None
     return blocks, output

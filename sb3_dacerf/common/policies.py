@@ -5,19 +5,18 @@ from typing import Any, ClassVar
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     FlattenExtractor,
-    create_mlp,
     get_actor_critic_arch,
 )
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
+from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleCritic, LayerNormCritic
 from sb3_dacerf.common.optim import get_optimizer_class
-from sb3_dacerf.common.utils import is_batch_renorm
 
 
 class GenerativeActor(BasePolicy, ABC):
@@ -190,12 +189,13 @@ class TwinCriticPolicy(BasePolicy):
         ``th.optim.Adam`` by default
     :param optimizer_kwargs: Additional keyword arguments,
         excluding the learning rate, to pass to the optimizer
-    :param n_critics: Number of critic networks to create.
+    :param n_critics: Number of critic networks to create (run together, each layer of all of them one batched
+        matrix product: :class:`~sb3_dacerf.common.ensemble.EnsembleCritic`)
     :param share_features_extractor: Whether to share or not the features extractor
         between the actor and the critic (this saves computation time)
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
     :param critic_layer_norm: Use critics with ``LayerNorm`` after every hidden layer (:class:`LayerNormCritic`)
-        instead of SB3's plain MLP critics
+        instead of plain MLP critics (:class:`EnsembleCritic`, SB3's critic networks)
     :param critic_batch_renorm: Use CrossQ's critics, with batch renormalisation before every linear layer
         (:class:`BatchRenormCritic`, needs sb3-contrib) and no target networks: the algorithm then bootstraps from
         the critics themselves, in one forward pass over the current and the next state-action pairs
@@ -203,8 +203,8 @@ class TwinCriticPolicy(BasePolicy):
 
     actor_class: ClassVar[type[GenerativeActor]]
     actor: GenerativeActor
-    critic: ContinuousCritic
-    critic_target: ContinuousCritic
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
 
     def __init__(
         self,
@@ -321,9 +321,9 @@ class TwinCriticPolicy(BasePolicy):
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
         return self.actor_class(**actor_kwargs).to(self.device)
 
-    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> EnsembleCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        critic_class: type[ContinuousCritic] = ContinuousCritic
+        critic_class: type[EnsembleCritic] = EnsembleCritic
         if self.critic_layer_norm:
             critic_class = LayerNormCritic
         elif self.critic_batch_renorm:
@@ -351,105 +351,3 @@ class TwinCriticPolicy(BasePolicy):
         self.actor.set_training_mode(mode)
         self.critic.set_training_mode(mode)
         self.training = mode
-
-
-class NormalisedCritic(ContinuousCritic, ABC):
-    """
-    SB3's twin ``ContinuousCritic`` whose Q-networks are rebuilt with normalisation layers that the subclass names
-    in :meth:`normalisation` (keyword arguments of SB3's ``create_mlp``). Same arguments as ``ContinuousCritic``.
-    """
-
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        net_arch: list[int],
-        features_extractor: BaseFeaturesExtractor,
-        features_dim: int,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        normalize_images: bool = True,
-        n_critics: int = 2,
-        share_features_extractor: bool = True,
-    ):
-        normalisation = self.normalisation()
-        super().__init__(
-            observation_space,
-            action_space,
-            net_arch,
-            features_extractor,
-            features_dim,
-            activation_fn=activation_fn,
-            normalize_images=normalize_images,
-            n_critics=n_critics,
-            share_features_extractor=share_features_extractor,
-        )
-        input_dim = features_dim + get_action_dim(action_space)
-        # SB3 annotates q_networks as list[nn.Module] but only iterates and indexes it, as a ModuleList allows; the
-        # ModuleList's parameter names (q_networks.<i>.*) are in saved models, so it stays
-        self.q_networks = nn.ModuleList()  # type: ignore[assignment]
-        for idx in range(n_critics):
-            layers = create_mlp(
-                input_dim,
-                1,
-                net_arch,
-                activation_fn,
-                pre_linear_modules=normalisation.get("pre_linear_modules"),
-                post_linear_modules=normalisation.get("post_linear_modules"),
-            )
-            q_net = nn.Sequential(*layers)
-            self.add_module(f"qf{idx}", q_net)
-            self.q_networks.append(q_net)
-
-    @classmethod
-    @abstractmethod
-    def normalisation(cls) -> dict[str, list[type[nn.Module]]]:
-        """``pre_linear_modules`` and/or ``post_linear_modules`` of ``create_mlp`` for each Q-network."""
-
-
-class LayerNormCritic(NormalisedCritic):
-    """
-    SB3's twin ``ContinuousCritic`` with ``LayerNorm`` after every hidden linear layer (before the activation),
-    as in the critics of BRO, SimBa and FlowRL: normalised features keep the Q-values and ``∇_a Q`` (which drives
-    the Langevin targets) on a stable scale. Same arguments as ``ContinuousCritic``.
-    """
-
-    @classmethod
-    def normalisation(cls) -> dict[str, list[type[nn.Module]]]:
-        return dict(post_linear_modules=[nn.LayerNorm])
-
-
-class BatchRenormCritic(NormalisedCritic):
-    """
-    SB3's twin ``ContinuousCritic`` with CrossQ's batch renormalisation (sb3-contrib's ``BatchRenorm1d``, momentum
-    0.01) before every linear layer. The layers normalise with the running statistics except while
-    :meth:`set_bn_training_mode` has them in training mode: the algorithm turns that on only for the critic update's
-    joint forward pass over ``(s, a)`` and ``(s', a')``. Same arguments as ``ContinuousCritic``.
-    """
-
-    def __init__(self, *args: Any, **kwargs: Any):
-        super().__init__(*args, **kwargs)
-        self.set_bn_training_mode(False)
-
-    @classmethod
-    def normalisation(cls) -> dict[str, list[type[nn.Module]]]:
-        try:
-            from sb3_contrib.common.torch_layers import BatchRenorm1d
-        except ImportError as error:
-            raise ImportError(
-                "critic_batch_renorm=True uses sb3-contrib's BatchRenorm1d: pip install 'sb3-contrib>=2.4'"
-            ) from error
-        return dict(pre_linear_modules=[BatchRenorm1d])
-
-    def set_training_mode(self, mode: bool) -> None:
-        super().set_training_mode(mode)
-        # The normalisation layers leave running-statistics mode only through set_bn_training_mode
-        self.set_bn_training_mode(False)
-
-    def set_bn_training_mode(self, mode: bool) -> None:
-        """
-        :param mode: Normalise with the batch's statistics and update the running ones (``True``), or normalise with
-            the running statistics (``False``)
-        """
-        for module in self.modules():
-            if is_batch_renorm(module):
-                module.train(mode)

@@ -20,12 +20,13 @@ from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBufferSamples
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
-from torch.nn import functional as F
 
-from sb3_dacerf.common.policies import BatchRenormCritic, GenerativeActor, TwinCriticPolicy
+from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleCritic, convert_separate_critics_optimizer
+from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
 from sb3_dacerf.common.utils import atomic_path, non_finite_entries, save_path_with_suffix
 
 SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAlgorithm")
@@ -110,8 +111,8 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
 
     policy: TwinCriticPolicy
     actor: GenerativeActor
-    critic: ContinuousCritic
-    critic_target: ContinuousCritic
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
 
     def __init__(
         self,
@@ -171,6 +172,24 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
 
         :return: The critic loss
         """
+        critic_loss = self.critic_loss(replay_data)["loss"]
+        loss = self._checked(critic_loss, "critic loss", replay_data)
+
+        self.critic.optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic.optimizer.step()
+        return loss
+
+    def critic_loss(self, replay_data: ReplayBufferSamples) -> dict[str, th.Tensor]:
+        """
+        The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` on a replay batch, with the Bellman target
+        ``y = r + γ (1 - done) min_j Q̄_j(s', a')``, ``a' ~ π(·|s')`` (the critics themselves instead of the targets
+        with CrossQ's critics, whose running statistics this pass updates).
+
+        :param replay_data: A batch of the replay buffer
+        :return: ``loss`` (differentiable with respect to the critics), ``target_q_values`` ``y`` ``(batch, 1)`` and
+            ``current_q_values`` ``(n_critics, batch, 1)`` (detached)
+        """
         # For n-step replay, discount factor is gamma**n_steps (when no early termination)
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         with th.no_grad():
@@ -181,34 +200,25 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
             # that the batch statistics are those of both, in training mode for this pass only
             critic.set_bn_training_mode(True)
             try:
-                all_q_values = th.cat(
-                    critic(
-                        _cat_observations(replay_data.observations, replay_data.next_observations),
-                        th.cat([replay_data.actions, next_actions], dim=0),
-                    ),
-                    dim=1,
+                all_q_values = critic.q_values(
+                    _cat_observations(replay_data.observations, replay_data.next_observations),
+                    th.cat([replay_data.actions, next_actions], dim=0),
                 )
             finally:  # back to the running statistics even if the pass fails, so no later pass updates them
                 critic.set_bn_training_mode(False)
-            current, next_q_values = th.split(all_q_values, replay_data.actions.shape[0], dim=0)
-            current_q_values: tuple[th.Tensor, ...] = tuple(current.T[..., None])
+            current_q_values, next_q_values = th.split(all_q_values, replay_data.actions.shape[0], dim=1)
             next_q_values = next_q_values.detach()
         else:
             with th.no_grad():
-                next_q_values = th.cat(self.critic_target(replay_data.next_observations, next_actions), dim=1)
-            current_q_values = self.critic(replay_data.observations, replay_data.actions)
+                next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
+            current_q_values = critic.q_values(replay_data.observations, replay_data.actions)
         with th.no_grad():
-            next_q_values, _ = th.min(next_q_values, dim=1, keepdim=True)
-            target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q_values
+            # (n_critics, batch, 1) -> (batch, 1)
+            target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q_values.min(dim=0).values
 
-        critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q_values) for current_q in current_q_values)
-        assert isinstance(critic_loss, th.Tensor)  # for type checker
-        loss = self._checked(critic_loss, "critic loss", replay_data)
-
-        self.critic.optimizer.zero_grad()
-        critic_loss.backward()
-        self.critic.optimizer.step()
-        return loss
+        # 0.5 * sum_j mean((Q_j - y)^2): every critic's MSE, from the stacked Q-values in one pass
+        critic_loss = 0.5 * (current_q_values - target_q_values).pow(2).mean(dim=(1, 2)).sum()
+        return dict(loss=critic_loss, target_q_values=target_q_values, current_q_values=current_q_values.detach())
 
     def _update_targets(self) -> None:
         """Polyak update of the target critics: ``Q̄ <- (1 - τ) Q̄ + τ Q`` (none with CrossQ's critics)."""
@@ -370,6 +380,35 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
     def _excluded_save_params(self) -> list[str]:
         return super()._excluded_save_params() + ["actor", "critic", "critic_target"]  # noqa: RUF005
 
+    def set_parameters(
+        self,
+        load_path_or_dict: str | pathlib.Path | io.BufferedIOBase | dict[str, Any],
+        exact_match: bool = True,
+        device: th.device | str = "auto",
+    ) -> None:
+        """
+        See :meth:`BaseAlgorithm.set_parameters`. Parameters saved by versions with separate critic networks load too:
+        the networks' entries are stacked into the ensemble critics' (``EnsembleCritic``), and so is the state of
+        the critic optimizer.
+        """
+        if isinstance(load_path_or_dict, dict):
+            params = load_path_or_dict
+        else:
+            _, params, _ = load_from_zip_file(load_path_or_dict, device=device)
+        optimizer_state = params.get("critic.optimizer") if isinstance(params, dict) else None
+        if isinstance(optimizer_state, dict) and len(optimizer_state.get("param_groups", [])) == 1:
+            saved_count = len(optimizer_state["param_groups"][0]["params"])
+            current = self.critic.optimizer.param_groups[0]["params"]
+            n_ensemble = sum(1 for _ in self.critic.ensemble.parameters())
+            if saved_count != len(current) and self.critic.n_critics > 1:
+                params = {
+                    **params,
+                    "critic.optimizer": convert_separate_critics_optimizer(
+                        optimizer_state, self.critic, n_leading=len(current) - n_ensemble
+                    ),
+                }
+        super().set_parameters(params, exact_match=exact_match, device=device)
+
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
         return state_dicts, []
@@ -419,13 +458,13 @@ def check_action_space(action_space: spaces.Space, algorithm: str) -> None:
         )
 
 
-def min_q(
-    critic: Callable[[PyTorchObs, th.Tensor], tuple[th.Tensor, ...]], observations: PyTorchObs, actions: th.Tensor
-) -> th.Tensor:
+def min_q(critic: Callable[[PyTorchObs, th.Tensor], Any], observations: PyTorchObs, actions: th.Tensor) -> th.Tensor:
     """
-    ``min_j Q_j(s, a)`` over the Q-networks of an SB3 ``ContinuousCritic`` (DACERF's, DACER's, SAC's, TD3's),
-    shape ``(batch, 1)``.
+    ``min_j Q_j(s, a)`` over the critics of an :class:`~sb3_dacerf.common.ensemble.EnsembleCritic` (DACERF's,
+    DACER's) or of an SB3 ``ContinuousCritic`` (SAC's, TD3's), shape ``(batch, 1)``.
     """
+    if isinstance(critic, EnsembleCritic):
+        return critic.q_values(observations, actions).min(dim=0).values
     return th.min(th.cat(critic(observations, actions), dim=1), dim=1, keepdim=True).values
 
 

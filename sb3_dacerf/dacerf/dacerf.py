@@ -214,6 +214,8 @@ class DACERF(TwinCriticAlgorithm):
         self.entropy_estimate = entropy_estimate
         self.ent_coef_optimizer: th.optim.Adam | None = None
         self._n_actor_updates = 0
+        # The last entropy estimate and flow spread (measured at every actor update only when α is learned)
+        self._last_entropy_and_spread = (math.nan, math.nan)
         # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
         self.policy_kwargs = merge_policy_kwarg(self.policy_kwargs, "n_sampling_steps", n_sampling_steps, 1, "DACERF")
         # LayerNorm critics unless policy_kwargs say otherwise (benchmarks/learning.md, "Critic options"). Written into
@@ -327,18 +329,28 @@ class DACERF(TwinCriticAlgorithm):
         :param normalize_gradient: Overrides the model's ``langevin_normalize_gradient`` (``None``: keep it)
         :return: ``a*``, detached, the shape of ``actions``
         """
+        return self._langevin(observations, actions, normalize_gradient)[0]
+
+    def _langevin(
+        self, observations: th.Tensor, actions: th.Tensor, normalize_gradient: bool | None = None
+    ) -> tuple[th.Tensor, MinQActionGradient]:
+        """:meth:`langevin_targets`, and the ``∇_a min Q`` object it used (its features and ``start_min_q``)."""
         if normalize_gradient is None:
             normalize_gradient = self.langevin_normalize_gradient
         langevin = compiled_langevin_targets() if self.compile_langevin else langevin_targets
         with frozen(self._critic_parameters()):
-            return langevin(
-                MinQActionGradient(self.critic, observations),
+            gradient = MinQActionGradient(self.critic, observations)
+            targets = langevin(
+                gradient,
                 actions,
                 n_steps=self.langevin_steps,
                 step_size=self.langevin_step_size,
                 temperature=self.langevin_temperature,
                 normalize_gradient=normalize_gradient,
             )
+        if self.compile_langevin:  # what the compiled loop kept is not relied on
+            gradient.start_min_q = None
+        return targets, gradient
 
     def actor_loss_terms(self, replay_data: Any) -> dict[str, th.Tensor]:
         """
@@ -352,16 +364,20 @@ class DACERF(TwinCriticAlgorithm):
         """
         observations, actions_buffer = replay_data.observations, replay_data.actions
         with frozen(self._critic_parameters()):
-            # Langevin targets a* from the replay actions (Algorithm 1), gradients w.r.t. actions only
-            actions_star = self.langevin_targets(observations, actions_buffer)
+            # Langevin targets a* from the replay actions (Algorithm 1), gradients w.r.t. actions only; the critics'
+            # features of the batch are computed once, there, and serve every Q below
+            actions_star, q_gradient = self._langevin(observations, actions_buffer)
             with th.no_grad():
-                q_values_star = self._min_q(observations, actions_star)
-                q_values_buffer = self._min_q(observations, actions_buffer)
+                q_values_star = q_gradient.min_q(actions_star)
+                # Q(s, a_B) was evaluated at the loop's first step, from a_B
+                q_values_buffer = q_gradient.start_min_q
+                if q_values_buffer is None:  # no Langevin step (langevin_steps=0), or the compiled loop
+                    q_values_buffer = q_gradient.min_q(actions_buffer)
 
             # Policy improvement term: -Q(s, π_θ(s)), through the sampler from a_0 ~ N(0, I) (no exploration noise)
             features = self.actor.extract_features(observations, self.actor.features_extractor)
             actions_pi = self.actor.sample(features, self.actor.draw_noise(features))
-            q_values_pi = self._min_q(observations, actions_pi)
+            q_values_pi = self.critic.q_values_of_features(q_gradient.features, actions_pi).min(dim=0).values
 
             # Flow-matching (imitation) term ||v_θ(s, a_t, t) - (a* - a_0)||² towards a*, weighted by λ_f ∝ the gain
             kappa, lambda_f = actor_loss_weights(
@@ -405,15 +421,23 @@ class DACERF(TwinCriticAlgorithm):
         actor_loss = terms["improvement_term"] + terms["imitation_term"]
         logs = {"actor_loss": self._checked(actor_loss, "actor loss", replay_data)}
         self._n_actor_updates += 1
-        if self._n_actor_updates % 250 == 1:  # the balance diagnostic costs two backward passes: not at every update
+        diagnostic = self._n_actor_updates % 250 == 1
+        if diagnostic:  # the balance diagnostic costs two backward passes: not at every update
             logs["imitation_to_improvement_grad"] = self.actor_gradient_ratio(terms)
 
         self.actor.optimizer.zero_grad()
         actor_loss.backward()
         self.actor.optimizer.step()
 
-        # Entropy regulator: estimate H of the noisy policy, then step log α on J(α) = log α (H - H_target)
-        entropy, spread = self._entropy_and_spread(terms["features"])
+        # Entropy regulator: estimate H of the noisy policy, then step log α on J(α) = log α (H - H_target). With α
+        # fixed the estimate and the flow's spread are only logged: measured with the balance diagnostic, not at
+        # every update
+        learns_ent_coef = self.ent_coef_optimizer is not None
+        entropy, spread = self._last_entropy_and_spread
+        if learns_ent_coef or diagnostic:
+            entropy, measured_spread = self._entropy_and_spread(terms["features"], spread=diagnostic)
+            spread = spread if math.isnan(measured_spread) else measured_spread  # else the last one measured
+            self._last_entropy_and_spread = (entropy, spread)
         if self.ent_coef_optimizer is not None:
             ent_coef_gradient = entropy - float(self.target_entropy)  # a float since _setup_model()
             self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, ent_coef_gradient)
@@ -433,24 +457,31 @@ class DACERF(TwinCriticAlgorithm):
         return logs
 
     @th.no_grad()
-    def _entropy_and_spread(self, features: th.Tensor, n_states: int = 32, n_samples: int = 8) -> tuple[float, float]:
+    def _entropy_and_spread(
+        self, features: th.Tensor, n_states: int = 32, n_samples: int = 8, spread: bool = True
+    ) -> tuple[float, float]:
         """
         Entropy estimate of the noisy policy, per ``entropy_estimate``, and the flow's own ``action_spread``:
         the standard deviation of its actions over ``n_samples`` noises ``a_0`` at ``n_states`` fixed states,
-        averaged over action dimensions and states (0 = a deterministic flow).
+        averaged over action dimensions and states (0 = a deterministic flow). The flow is sampled only when the
+        estimate (``"fit"``) or the spread (``spread=True``) needs it; the spread is NaN when it is not measured.
         """
-        features = features[:n_states].repeat_interleave(n_samples, dim=0)
-        actions = self.actor.sample(features, self.actor.draw_noise(features))
-        variance = actions.view(-1, n_samples, self.actor.action_dim).var(dim=1)  # (n_states, action_dim)
-        spread = variance.sqrt().mean().item()
+        flow_variance = None
+        action_spread = math.nan
+        if self.entropy_estimate == "fit" or spread:
+            features = features[:n_states].repeat_interleave(n_samples, dim=0)
+            actions = self.actor.sample(features, self.actor.draw_noise(features))
+            flow_variance = actions.view(-1, n_samples, self.actor.action_dim).var(dim=1)  # (n_states, action_dim)
+            action_spread = flow_variance.sqrt().mean().item()
         noise_variance = self.actor.exploration_std.pow(2)
-        if self.entropy_estimate == "noise":
-            variance = th.zeros_like(variance)
-        variance = variance + noise_variance
+        if self.entropy_estimate == "noise" or flow_variance is None:  # the noise's closed form (flow taken as deterministic)
+            variance = noise_variance.expand(1, self.actor.action_dim)
+        else:
+            variance = flow_variance + noise_variance
         if not bool((variance > 0).all()):
-            return -math.inf, spread
+            return -math.inf, action_spread
         entropy = 0.5 * (math.log(2 * math.pi * math.e) + variance.log()).sum(dim=1).mean().item()
-        return entropy, spread
+        return entropy, action_spread
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, saved_variables = super()._get_torch_save_params()
