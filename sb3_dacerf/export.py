@@ -1,5 +1,5 @@
 """
-Export a DACER-F or DACER policy to ONNX or TorchScript for deployment without Python, SB3 or this package.
+Export a DACER-F, DACER or DSAC policy to ONNX or TorchScript for deployment without Python, SB3 or this package.
 
 The exported graph takes the raw observation (SB3's preprocessing inside: image scaling, one-hot encoding,
 Dict features extraction, and optionally VecNormalize's observation normalisation) and returns the action
@@ -7,7 +7,8 @@ in the environment's units, as ``model.predict`` does. The generator's noise is 
 it is 0 (``deterministic=True``); given standard normal noise, the policy samples stochastically (without the
 exploration noise of rollouts). DACER-F's noise ``a0`` is the flow's starting point, ``(batch, action_dim)``; DACER's
 ``noise``, ``(batch, n_diffusion_steps, action_dim)``, holds the start and the posterior noise of each reverse step
-(:class:`sb3_dacerf.dacer.policies.DiffusionActor`). Either may have a batch of 1, shared by all the observations.
+(:class:`sb3_dacerf.dacer.policies.DiffusionActor`); DSAC's ``noise``, ``(batch, action_dim)``, is the standard normal
+``ξ`` of its tanh-Gaussian action ``tanh(μ + σ ξ)``. Any of them may have a batch of 1, shared by all the observations.
 
     python -m sb3_dacerf.export MODEL.zip --format onnx --out policy.onnx
     python -m sb3_dacerf.export MODEL.zip --format torchscript --vec-normalize vecnormalize.pkl
@@ -36,6 +37,8 @@ from sb3_dacerf.dacer.dacer import DACER
 from sb3_dacerf.dacer.policies import DACERPolicy, DiffusionActor
 from sb3_dacerf.dacerf.dacerf import DACERF
 from sb3_dacerf.dacerf.policies import FlowActor
+from sb3_dacerf.dsac.dsac import DSAC
+from sb3_dacerf.dsac.policies import DSACPolicy, GaussianActor
 
 EXPORT_FORMATS = ("onnx", "torchscript")
 # Observation spaces that SB3's ``preprocess_obs`` handles with traceable tensor operations
@@ -229,6 +232,30 @@ class ExportableDiffusionPolicy(ExportablePolicy):
         return actions
 
 
+class ExportableGaussianPolicy(ExportablePolicy):
+    """
+    The deployment graph of a DSAC actor: ``tanh(μ)`` (no noise) or ``tanh(μ + σ ξ)`` (noise ``ξ``), ``μ`` and the
+    clipped ``log σ`` from one call of the actor's network, as ``GaussianActor.sample``.
+
+    :param actor: The tanh-Gaussian actor (``model.actor``)
+    :param vec_normalize: VecNormalize wrapper the model was trained with (see :class:`ExportablePolicy`)
+    """
+
+    noise_name = "noise"
+
+    actor: GaussianActor
+
+    def __init__(self, actor: GaussianActor, vec_normalize: VecNormalize | None = None):
+        super().__init__(actor, vec_normalize)
+        self.log_std_min, self.log_std_max = actor.log_std_min, actor.log_std_max
+
+    def generate(self, features: th.Tensor, noise: th.Tensor | None) -> th.Tensor:
+        mean, log_std = self.actor.network(features).chunk(2, dim=-1)
+        if noise is None:
+            return th.tanh(mean)
+        return th.tanh(mean + log_std.clamp(self.log_std_min, self.log_std_max).exp() * noise)
+
+
 def _linear(layer: nn.Module) -> nn.Linear:
     """``layer``, the first or last layer of an actor's network, as the ``nn.Linear`` the graph splits or scales."""
     if not isinstance(layer, nn.Linear):
@@ -242,13 +269,21 @@ def exportable_policy(
     """
     The deployment graph of an actor of this package.
 
-    :param actor: ``model.actor`` of a DACERF or DACER model
+    :param actor: ``model.actor`` of a DACERF, DACER or DSAC model
     :param n_sampling_steps: DACERF: number of Euler steps fixed in the graph (the actor's by default). DACER: leave it
-        out (or give the model's ``n_diffusion_steps``): the number of reverse steps is fixed by the noise schedule
+        out (or give the model's ``n_diffusion_steps``): the number of reverse steps is fixed by the noise schedule.
+        DSAC: leave it out (one network call)
     :param vec_normalize: VecNormalize wrapper the model was trained with, if any
     :raises TypeError: for another actor
-    :raises ValueError: for a DACER ``n_sampling_steps`` other than its ``n_diffusion_steps``
+    :raises ValueError: for a DACER ``n_sampling_steps`` other than its ``n_diffusion_steps``, or any for DSAC
     """
+    if isinstance(actor, GaussianActor):
+        if n_sampling_steps is not None:
+            raise ValueError(
+                f"n_sampling_steps={n_sampling_steps!r}: a DSAC policy computes its action in one network call; leave "
+                "n_sampling_steps out (a DACERF option)."
+            )
+        return ExportableGaussianPolicy(actor, vec_normalize)
     if isinstance(actor, FlowActor):
         return ExportableFlowPolicy(actor, n_sampling_steps, vec_normalize)
     if isinstance(actor, DiffusionActor):
@@ -259,7 +294,7 @@ def exportable_policy(
             )
         return ExportableDiffusionPolicy(actor, vec_normalize)
     raise TypeError(
-        f"export_policy exports DACERF and DACER models (a sb3_dacerf FlowActor or DiffusionActor), "
+        f"export_policy exports DACERF, DACER and DSAC models (a sb3_dacerf FlowActor, DiffusionActor or GaussianActor), "
         f"got an actor of type {type(actor).__name__}. "
         "For SB3's own algorithms see https://stable-baselines3.readthedocs.io/en/master/guide/export.html"
     )
@@ -380,22 +415,24 @@ def export_policy(
     opset_version: int = 17,
 ) -> Path:
     """
-    Export the policy of a DACER-F or DACER model as a graph from raw observation to action in the environment's units.
+    Export the policy of a DACER-F, DACER or DSAC model as a graph from raw observation to action in the environment's units.
 
     ONNX: inputs ``obs`` (or one input per key of a Dict observation space, named by the key) and the noise (DACERF:
-    ``a0``, ``(batch, action_dim)``; DACER: ``noise``, ``(batch, n_diffusion_steps, action_dim)``), output ``action``,
+    ``a0``, ``(batch, action_dim)``; DACER: ``noise``, ``(batch, n_diffusion_steps, action_dim)``; DSAC: ``noise``,
+    ``(batch, action_dim)``), output ``action``,
     batch dimension dynamic. The noise defaults to zeros (an initializer that onnxruntime lets you override:
     ``session.run(None, {"obs": obs})`` is deterministic, ``{"obs": obs, "a0": a0}`` is not); a noise with a batch of 1
     is shared by all the observations. TorchScript: ``policy(obs)`` or ``policy(obs, noise)``, with ``obs`` a tensor
     or a dict of tensors. Observations have the model's observation space layout (channel-first images, as after
     ``VecTransposeImage``) and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch dimension.
 
-    :param model: A DACERF or DACER model (trained or not)
+    :param model: A DACERF, DACER or DSAC model (trained or not)
     :param path: File to write (``.onnx`` or ``.pt`` by convention); its folder must exist. The file is written
         whole or not at all: it replaces an existing one only once complete
     :param format: ``"onnx"`` or ``"torchscript"``
     :param n_sampling_steps: DACERF: number of Euler steps, fixed in the graph (the model's ``n_sampling_steps`` by
-        default). DACER: leave it out; its ``n_diffusion_steps`` reverse steps are fixed by its noise schedule
+        default). DACER: leave it out; its ``n_diffusion_steps`` reverse steps are fixed by its noise schedule. DSAC: leave
+        it out
     :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``VecNormalize.load``), if any:
         its observation normalisation is then applied inside the graph, so the graph takes raw observations; statistics
         of another observation layout are refused (:func:`check_vec_normalize`)
@@ -405,9 +442,10 @@ def export_policy(
     if format not in EXPORT_FORMATS:
         raise ValueError(f"Unknown export format {format!r}: choose one of {EXPORT_FORMATS}")
     actor = getattr(model, "actor", None)
-    if not isinstance(actor, (FlowActor, DiffusionActor)):
+    if not isinstance(actor, (FlowActor, DiffusionActor, GaussianActor)):
         raise TypeError(
-            f"export_policy exports DACERF and DACER models (whose actor is a FlowActor or a DiffusionActor), "
+            f"export_policy exports DACERF, DACER and DSAC models (whose actor is a FlowActor, a DiffusionActor or a "
+            "GaussianActor), "
             f"got a {type(model).__name__} model whose actor is a {type(actor).__name__}. "
             "For SB3's own algorithms see https://stable-baselines3.readthedocs.io/en/master/guide/export.html"
         )
@@ -465,13 +503,15 @@ def export_policy(
     return path
 
 
-def load_model(path: Path) -> DACERF | DACER:
+def load_model(path: Path) -> DACERF | DACER | DSAC:
     """
-    Load a DACERF or DACER model on the CPU, the algorithm read from the file.
+    Load a DACERF, DACER or DSAC model on the CPU, the algorithm read from the file.
 
     :raises ValueError: if the file holds another algorithm's model, naming it
     """
     policy_class = saved_policy_class(path)
+    if isinstance(policy_class, type) and issubclass(policy_class, DSACPolicy):
+        return DSAC.load(path, device="cpu")
     algorithm = DACER if isinstance(policy_class, type) and issubclass(policy_class, DACERPolicy) else DACERF
     return algorithm.load(path, device="cpu")
 
@@ -480,11 +520,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         prog="python -m sb3_dacerf.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("model", type=Path, help="DACERF or DACER model saved with model.save() (.zip)")
+    parser.add_argument("model", type=Path, help="DACERF, DACER or DSAC model saved with model.save() (.zip)")
     parser.add_argument("--format", choices=EXPORT_FORMATS, default="onnx")
     parser.add_argument("--out", type=Path, help="output file (default: the model's name with .onnx or .pt)")
     parser.add_argument(
-        "--n-sampling-steps", type=int, help="DACERF: Euler steps fixed in the graph (default: the model's); not for DACER"
+        "--n-sampling-steps",
+        type=int,
+        help="DACERF: Euler steps fixed in the graph (default: the model's); not for DACER or DSAC",
     )
     parser.add_argument("--vec-normalize", type=Path, help="VecNormalize statistics (.pkl) to bake into the graph")
     parser.add_argument("--opset", type=int, default=17, help="ONNX opset version")
@@ -496,7 +538,7 @@ def main() -> None:
         model = load_model(args.model)
     except Exception as error:
         parser.error(
-            f"could not load {args.model} as a DACERF or DACER model (was it saved by another algorithm?): "
+            f"could not load {args.model} as a DACERF, DACER or DSAC model (was it saved by another algorithm?): "
             f"{type(error).__name__}: {error}"
         )
     vec_normalize = None
@@ -517,7 +559,9 @@ def main() -> None:
         export_policy(model, out, args.format, args.n_sampling_steps, vec_normalize, args.opset)
     except (TypeError, ValueError, FileNotFoundError) as error:
         parser.error(str(error))
-    if isinstance(model.actor, DiffusionActor):
+    if isinstance(model.actor, GaussianActor):
+        steps = "one network call"
+    elif isinstance(model.actor, DiffusionActor):
         steps = f"{model.actor.n_diffusion_steps} diffusion step(s)"
     else:
         steps = f"{model.actor.n_sampling_steps if args.n_sampling_steps is None else args.n_sampling_steps} Euler step(s)"
