@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.callbacks import CheckpointCallback
 from stable_baselines3.common.logger import configure
 
-from sb3_dacerf import DSAC
+from sb3_dacerf import DACERF, DSAC
 from sb3_dacerf.dsac import dsac as dsac_module
 from sb3_dacerf.dsac.dsac import bounded_target, critic_loss, distributional_targets
 from sb3_dacerf.dsac.policies import TANH_EPSILON, GaussianCritic
@@ -306,6 +307,28 @@ def test_logs_both_critics_mean_and_std_alpha_and_entropy(tmp_path, fast):
         "critic_loss",
     ):
         assert f"train/{key}" in header, key
+
+
+def test_callbacks_and_tensorboard_keys(tmp_path, fast):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    model = DSAC("MlpPolicy", "Pendulum-v1", seed=0, tensorboard_log=str(tmp_path / "tb"), **fast)
+    model.learn(100, callback=CheckpointCallback(save_freq=50, save_path=str(tmp_path / "ckpt")))
+    assert len(list((tmp_path / "ckpt").glob("*.zip"))) == 2
+    events = EventAccumulator(str(tmp_path / "tb" / "DSAC_1"))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    critics = {f"train/q{i}_{what}" for i in (1, 2) for what in ("mean", "std")} | {"train/running_std1", "train/running_std2"}
+    assert critics | {"train/ent_coef", "train/entropy", "train/actor_loss", "train/critic_loss"} <= tags
+
+
+def test_another_algorithms_file_is_refused_with_its_name(tmp_path, fast):
+    DSAC("MlpPolicy", "Pendulum-v1", **fast).save(tmp_path / "dsac")
+    with pytest.raises(ValueError, match=r"holds a DSAC model .*load it with DSAC\.load"):
+        DACERF.load(tmp_path / "dsac.zip")
+    DACERF("MlpPolicy", "Pendulum-v1", buffer_size=1).save(tmp_path / "dacerf")
+    with pytest.raises(ValueError, match=r"holds a DACERF model .*load it with DACERF\.load"):
+        DSAC.load(tmp_path / "dacerf.zip")
 
 
 def test_save_load_keeps_the_running_std_alpha_and_optimizers(tmp_path, fast):
