@@ -4,6 +4,7 @@ them, the order and timing of its updates, its options and its errors. The SB3 i
 algorithms is tested in test_algorithms.py.
 """
 
+import copy
 import inspect
 import math
 from pathlib import Path
@@ -211,6 +212,74 @@ def _record_batches(model: DSAC) -> list[list[float]]:
 
     buffer.sample = sample  # type: ignore[method-assign]
     return recorded
+
+
+def test_one_update_is_dsac_t_written_out(fast):
+    """
+    One update (the first: critics, actor, α and targets) against DSAC-T written out here from the authors'
+    ``dsac_v2.py``, with the same random draws: every parameter and ``log α`` must come out the same.
+    """
+    model = DSAC("MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "learning_starts": 1_000})
+    _fill_buffer(model)
+    assert model.replay_buffer is not None
+    batch = model.replay_buffer.sample(32)
+    reference = copy.deepcopy(model)
+
+    model._n_updates = 1
+    th.manual_seed(7)
+    model._update(batch)
+
+    th.manual_seed(7)
+    obs, actions, rewards, next_obs, dones = (
+        batch.observations,
+        batch.actions,
+        batch.rewards,
+        batch.next_observations,
+        batch.dones,
+    )
+    alpha = reference.actor.log_alpha.exp().item()
+    with th.no_grad():
+        next_actions, next_log_prob = reference.actor_target.action_log_prob(next_obs)  # the target policy
+        (m1, s1), (m2, s2) = reference.critic_target.distributions(next_obs, next_actions)
+        z1, z2 = th.randn_like(m1).clamp(-3, 3), th.randn_like(m2).clamp(-3, 3)
+        q_next = th.min(m1, m2)
+        q_next_sample = th.where(m1 < m2, m1 + z1 * s1, m2 + z2 * s2)
+        target_q = rewards + (1 - dones) * 0.99 * (q_next - alpha * next_log_prob[:, None])
+        target_q_sample = rewards + (1 - dones) * 0.99 * (q_next_sample - alpha * next_log_prob[:, None])
+    critic_loss_value = th.zeros(())
+    for q, q_std in reference.critic.distributions(obs, actions):
+        mean_std = q_std.detach().mean()  # the first update: the running mean starts at the batch's
+        bound = q.detach() + th.clamp(target_q_sample - q.detach(), -3 * mean_std, 3 * mean_std)
+        std_d = q_std.detach()
+        ratio = (mean_std**2 / (std_d**2 + 0.1)).clamp(0.1, 10)
+        huber_q = th.nn.functional.huber_loss(q, target_q, delta=50, reduction="none")
+        huber_bound = th.nn.functional.huber_loss(q.detach(), bound, delta=50, reduction="none")
+        critic_loss_value = critic_loss_value + th.mean(ratio * (huber_q + q_std * (std_d**2 - huber_bound) / (std_d + 0.1)))
+    critic_parameters = list(reference.critic.parameters())
+    critic_gradients = th.autograd.grad(critic_loss_value, critic_parameters)
+    # The actor's loss with the critics of before their step
+    new_actions, log_prob = reference.actor.action_log_prob(obs)
+    q_pi = th.min(*reference.critic(obs, new_actions))
+    actor_loss = (alpha * log_prob[:, None] - q_pi).mean()
+    actor_parameters = list(reference.actor.parameters())
+    actor_gradients = th.autograd.grad(actor_loss, actor_parameters)
+    for parameter, gradient in zip(critic_parameters, critic_gradients, strict=True):
+        parameter.grad = gradient
+    for parameter, gradient in zip(actor_parameters, actor_gradients, strict=True):
+        parameter.grad = gradient
+    reference.critic.optimizer.step()
+    reference.actor.optimizer.step()
+    # loss_alpha = -log_alpha * (log_prob + target_entropy).mean()
+    assert reference.ent_coef_optimizer is not None
+    reference.actor.log_alpha.grad = -(log_prob.detach().mean() + reference.target_entropy).reshape(())
+    reference.ent_coef_optimizer.step()
+    with th.no_grad():
+        for online, target in [(reference.critic, reference.critic_target), (reference.actor, reference.actor_target)]:
+            for p, p_target in zip(online.parameters(), target.parameters(), strict=True):
+                p_target.mul_(1 - 0.005).add_(0.005 * p)
+
+    for (name, ours), theirs in zip(model.policy.state_dict().items(), reference.policy.state_dict().values(), strict=True):
+        th.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-6, msg=name)
 
 
 def test_running_std_starts_at_the_first_batch_and_is_smoothed_by_tau_b(fast):
