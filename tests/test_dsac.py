@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.callbacks import CheckpointCallback
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from sb3_dacerf import DACERF, DSAC
@@ -376,6 +377,14 @@ def test_logs_both_critics_mean_and_std_alpha_and_entropy(tmp_path, fast):
         "critic_loss",
     ):
         assert f"train/{key}" in header, key
+
+
+def test_learns_on_a_vec_env_of_several_environments(fast):
+    env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
+    model = DSAC("MlpPolicy", env, seed=0, **fast)
+    model.learn(120)
+    assert model.num_timesteps == 120 and model._n_updates == 35  # one gradient step per rollout of 2 transitions
+    assert model.predict(env.reset(), deterministic=True)[0].shape == (2, 1)
 
 
 def test_callbacks_and_tensorboard_keys(tmp_path, fast):
