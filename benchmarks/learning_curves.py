@@ -95,6 +95,7 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # version 0.1.0's short-budget settings: SAC's tau and Gaussian action noise 0.1, no regulator, "q_scale" weights
     "dacerf-tuned": ("DACERF", dict(ent_coef=0.0, flow_matching_weights="q_scale", action_noise_std=0.1)),
     "dacer": ("DACER", {}),
+    "dsac": ("DSAC", {}),  # DSAC-T with the authors' defaults (sb3_dacerf.DSAC)
     "sac": ("SAC", {}),
     "sac-nstep3": ("SAC", dict(n_steps=3)),
     # a discount whose horizon 1 / (1 - gamma) = 500 steps covers a 400-step intersection episode (the driving

@@ -1,5 +1,5 @@
 """
-RL Zoo integration: ``python -m rl_zoo3.train --algo dacerf --env <id>`` or ``--algo dacer`` (and ``enjoy``,
+RL Zoo integration: ``python -m rl_zoo3.train --algo dacerf --env <id>``, ``--algo dacer`` or ``--algo dsac`` (and ``enjoy``,
 ``record_video``, ``--optimize``) with no wrapper script and no ``--conf-file``: each algorithm reads its own
 ``hyperparams/<algo>.yml``.
 
@@ -9,15 +9,16 @@ by the next worker that starts a trial, instead of staying RUNNING forever; and 
 on a new database no longer fail creating Optuna's tables.
 
 RL Zoo's ``ParallelTrainCallback`` (``-params callback:"'rl_zoo3.callbacks.ParallelTrainCallback'"``), gradient
-steps in a thread while the environment steps, works with DACERF and DACER as with SAC: see :class:`ParallelTraining`.
+steps in a thread while the environment steps, works with DACERF, DACER and DSAC as with SAC: see
+:class:`ParallelTraining`.
 
-RL Zoo fixes its ``--algo`` choices from ``rl_zoo3.utils.ALGOS`` before it imports ``--gym-packages``, so DACERF
-and DACER have to be there earlier: the start-up hook ``sb3_dacerf_zoo_hook`` (installed by ``pip install .``) calls
-:func:`register` on ``rl_zoo3.utils``, ``rl_zoo3.hyperparams_opt``, ``rl_zoo3.exp_manager`` and ``rl_zoo3.callbacks``
-as soon as each is imported. Where the hook is not installed, ``python -m sb3_dacerf.zoo train --algo dacerf ...``
-(any RL Zoo script name in place of ``train``) registers both algorithms and runs the script.
+RL Zoo fixes its ``--algo`` choices from ``rl_zoo3.utils.ALGOS`` before it imports ``--gym-packages``, so DACERF,
+DACER and DSAC have to be there earlier: the start-up hook ``sb3_dacerf_zoo_hook`` (installed by ``pip install .``)
+calls :func:`register` on ``rl_zoo3.utils``, ``rl_zoo3.hyperparams_opt``, ``rl_zoo3.exp_manager`` and
+``rl_zoo3.callbacks`` as soon as each is imported. Where the hook is not installed, ``python -m sb3_dacerf.zoo train
+--algo dacerf ...`` (any RL Zoo script name in place of ``train``) registers the algorithms and runs the script.
 
-This module is imported only together with RL Zoo: it imports torch, Stable-Baselines3, DACERF and DACER.
+This module is imported only together with RL Zoo: it imports torch, Stable-Baselines3, DACERF, DACER and DSAC.
 """
 
 import contextlib
@@ -42,7 +43,7 @@ from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import recursive_getattr
 
-from sb3_dacerf import DACER, DACERF
+from sb3_dacerf import DACER, DACERF, DSAC
 
 if TYPE_CHECKING:
     from rl_zoo3.callbacks import ParallelTrainCallback
@@ -54,7 +55,7 @@ if not HYPERPARAMS_DIR.is_dir():
     HYPERPARAMS_DIR = Path(__file__).parent.parent / "hyperparams"
 
 #: The algorithms this package adds to RL Zoo, by their ``--algo`` name
-ALGORITHMS = {"dacerf": DACERF, "dacer": DACER}
+ALGORITHMS = {"dacerf": DACERF, "dacer": DACER, "dsac": DSAC}
 
 # Same names as RL Zoo's off-policy samplers
 NET_ARCH = {
@@ -193,9 +194,55 @@ def sample_dacer_params(
     return convert_dacer_params(sampled, policy_kwargs)
 
 
+def convert_dsac_params(sampled_params: dict[str, Any], policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """
+    Turn the values drawn by :func:`sample_dsac_params` (an Optuna trial's ``params``) into DSAC arguments:
+    ``batch_size_pow`` and ``net_arch`` as for DACER, ``initial_ent_coef`` into ``ent_coef="auto_<value>"``.
+
+    :param sampled_params: Optuna parameters, as named in :func:`sample_dsac_params`
+    :param policy_kwargs: ``policy_kwargs`` of the YAML entry, which the sampled ``net_arch`` updates
+    :return: keyword arguments for ``DSAC``
+    """
+    hyperparams = convert_dacer_params(sampled_params, policy_kwargs)
+    if "initial_ent_coef" in hyperparams:
+        hyperparams["ent_coef"] = f"auto_{hyperparams.pop('initial_ent_coef')}"
+    return hyperparams
+
+
+def sample_dsac_params(
+    trial: optuna.Trial,
+    n_actions: int,
+    n_envs: int,
+    additional_args: dict[str, Any],
+    policy_kwargs: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """
+    Sampler for DSAC hyper-parameters (RL Zoo's ``HYPERPARAMS_SAMPLER`` signature): the optimisation settings, the
+    network size, the temperature's start and learning rate, the running-σ coefficient and the critic loss, around
+    the authors' values.
+
+    :param trial: Optuna trial
+    :param n_actions: action dimension (unused: ``target_entropy="auto"`` already scales with it)
+    :param n_envs: number of environments (unused)
+    :param additional_args: RL Zoo's extra arguments (unused: no HER replay buffer here)
+    :param policy_kwargs: ``policy_kwargs`` of the YAML entry, kept apart from the sampled ``net_arch``
+    :return: keyword arguments for ``DSAC``
+    """
+    sampled: dict[str, Any] = {
+        **sample_optimisation_params(trial),  # batch size from 128 to 1024 (authors: 256)
+        "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCH)),
+        "initial_ent_coef": trial.suggest_categorical("initial_ent_coef", [0.1, 1.0, 2.718]),  # authors: e
+        "alpha_learning_rate": trial.suggest_float("alpha_learning_rate", 3e-5, 3e-3, log=True),
+        "tau_b": trial.suggest_float("tau_b", 1e-4, 0.05, log=True),
+        "critic_loss": trial.suggest_categorical("critic_loss", ["dsac-v2", "gops"]),
+    }
+    trial.set_user_attr("batch_size", 2 ** sampled["batch_size_pow"])
+    return convert_dsac_params(sampled, policy_kwargs)
+
+
 #: Each algorithm's Optuna sampler and its converter (RL Zoo's ``HYPERPARAMS_SAMPLER`` and ``HYPERPARAMS_CONVERTER``)
-SAMPLERS = {"dacerf": sample_dacerf_params, "dacer": sample_dacer_params}
-CONVERTERS = {"dacerf": convert_dacerf_params, "dacer": convert_dacer_params}
+SAMPLERS = {"dacerf": sample_dacerf_params, "dacer": sample_dacer_params, "dsac": sample_dsac_params}
+CONVERTERS = {"dacerf": convert_dacerf_params, "dacer": convert_dacer_params, "dsac": convert_dsac_params}
 
 
 def default_config(algo: str, env_id: str) -> str | None:
@@ -204,7 +251,7 @@ def default_config(algo: str, env_id: str) -> str | None:
 
     :param algo: RL Zoo algorithm name
     :param env_id: Gymnasium id
-    :return: ``hyperparams/dacerf.yml`` for DACERF, ``hyperparams/dacer.yml`` for DACER; ``hyperparams/<algo>.yml`` of
+    :return: ``hyperparams/<algo>.yml`` for DACERF, DACER and DSAC; ``hyperparams/<algo>.yml`` of
         this package for another algorithm when it has an entry for ``env_id`` (e.g. SAC on ``DMC-*`` ids); else
         ``None`` (RL Zoo's own file)
     """
@@ -493,9 +540,9 @@ def _patch_parallel_train_callback(cls: "type[ParallelTrainCallback]") -> None:
 
 def register(module: ModuleType) -> None:
     """
-    Add DACERF and DACER to one RL Zoo module (idempotent): ``rl_zoo3.utils`` (``ALGOS``), ``rl_zoo3.hyperparams_opt``
-    (Optuna samplers and converters), ``rl_zoo3.exp_manager`` (default YAML files) or ``rl_zoo3.callbacks``
-    (``ParallelTrainCallback``, see :class:`ParallelTraining`); other modules are left alone.
+    Add DACERF, DACER and DSAC to one RL Zoo module (idempotent): ``rl_zoo3.utils`` (``ALGOS``),
+    ``rl_zoo3.hyperparams_opt`` (Optuna samplers and converters), ``rl_zoo3.exp_manager`` (default YAML files) or
+    ``rl_zoo3.callbacks`` (``ParallelTrainCallback``, see :class:`ParallelTraining`); other modules are left alone.
 
     :param module: the RL Zoo module, already executed
     """
@@ -512,7 +559,7 @@ def register(module: ModuleType) -> None:
 
 
 def main() -> None:
-    """``python -m sb3_dacerf.zoo <script> [args]``: run ``rl_zoo3.<script>`` (train, enjoy, ...) with DACERF and DACER."""
+    """``python -m sb3_dacerf.zoo <script> [args]``: run ``rl_zoo3.<script>`` (train, enjoy, ...) with DACERF, DACER and DSAC."""
     import rl_zoo3.callbacks
     import rl_zoo3.exp_manager
     import rl_zoo3.hyperparams_opt

@@ -1,7 +1,7 @@
 """
 Fixtures shared by the test modules.
 
-Behaviours both algorithms share are tested once, parametrised over ``MODEL_LIST`` through the ``model_class``
+Behaviours the algorithms share are tested once, parametrised over ``MODEL_LIST`` through the ``model_class``
 fixture (as sb3-contrib's tests are). A module about one algorithm overrides ``model_class`` with a fixture that
 returns that algorithm (pytest's fixture overriding), and gets the same ``fast`` settings.
 """
@@ -11,12 +11,12 @@ from typing import Any
 import pytest
 import torch as th
 
-from sb3_dacerf import DACER, DACERF
+from sb3_dacerf import DACER, DACERF, DSAC
 
 # The suite's networks and batches are tiny: one thread avoids oversubscribing CI's two cores
 th.set_num_threads(1)
 
-MODEL_LIST = [DACER, DACERF]
+MODEL_LIST = [DACER, DACERF, DSAC]
 
 
 def fast_settings(model_class: type) -> dict[str, Any]:

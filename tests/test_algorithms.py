@@ -1,5 +1,5 @@
 """
-What DACER and DACERF share, tested on both (``model_class``, see conftest.py): the SB3 algorithm interface
+What the algorithms share (DACER, DACERF, DSAC), tested on each (``model_class``, see conftest.py): the SB3 algorithm interface
 (constructor, learn, predict, save and load, observation spaces), the generative actor interface, and the
 hyper-parameter checks.
 """

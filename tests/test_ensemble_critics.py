@@ -112,7 +112,7 @@ def test_critics_equal_separate_networks_with_the_same_weights(critics):
     networks = separate_networks(model.critic)
     target_networks = separate_networks(model.critic_target)
     th.manual_seed(11)
-    terms = model.critic_loss(batch)
+    terms = model.critic_terms(batch)
     th.manual_seed(11)
     with th.no_grad():
         next_actions = model.actor(batch.next_observations)

@@ -13,8 +13,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import SimpleMultiObsEnv
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_dacerf import DACER, DACERF
-from sb3_dacerf.export import export_policy, exportable_policy, main
+from sb3_dacerf import DACER, DACERF, DSAC
+from sb3_dacerf.export import export_policy, exportable_policy, load_model, main
 
 ort = pytest.importorskip("onnxruntime")
 
@@ -47,6 +47,8 @@ class DiscreteObsEnv(gym.Env):
 
 def make_model(policy: str, n_sampling_steps: int = 1, algorithm: type = DACERF):
     settings = {**TINY, "n_sampling_steps": n_sampling_steps} if algorithm is DACERF else dict(TINY_DACER)
+    if algorithm is DSAC:
+        settings = dict(TINY)
     if policy == "MlpPolicy":
         return algorithm("MlpPolicy", "Pendulum-v1", **settings)
     env = SimpleMultiObsEnv(discrete_actions=False) if policy == "MultiInputPolicy" else DiscreteObsEnv()
@@ -85,7 +87,7 @@ def sample_with_noise(model, obs, noise: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("format", ["onnx", "torchscript"])
 @pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy", "DiscreteObs"])
-@pytest.mark.parametrize("algorithm", [DACERF, DACER], ids=["DACERF", "DACER"])
+@pytest.mark.parametrize("algorithm", [DACERF, DACER, DSAC], ids=["DACERF", "DACER", "DSAC"])
 def test_exported_policy_matches_predict(tmp_path, format, policy, algorithm):
     model = make_model(policy, algorithm=algorithm)
     path = export_policy(model, tmp_path / "policy", format=format)
@@ -128,6 +130,14 @@ def test_dacer_number_of_steps_is_that_of_its_schedule(tmp_path):
         export_policy(model, tmp_path / "p.onnx", n_sampling_steps=3)
 
 
+def test_dsac_takes_no_number_of_steps_and_loads_from_its_file(tmp_path):
+    model = make_model("MlpPolicy", algorithm=DSAC)
+    with pytest.raises(ValueError, match="a DSAC policy computes its action in one network call"):
+        export_policy(model, tmp_path / "p.onnx", n_sampling_steps=1)
+    model.save(tmp_path / "dsac.zip")
+    assert isinstance(load_model(tmp_path / "dsac.zip"), DSAC)
+
+
 @pytest.mark.parametrize("format", ["onnx", "torchscript"])
 def test_number_of_euler_steps_is_fixed_at_export(tmp_path, format):
     model = make_model("MlpPolicy", n_sampling_steps=3)
@@ -145,13 +155,13 @@ def test_number_of_euler_steps_is_fixed_at_export(tmp_path, format):
 
 @pytest.mark.parametrize("format", ["onnx", "torchscript"])
 @pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
-@pytest.mark.parametrize("algorithm", [DACERF, DACER], ids=["DACERF", "DACER"])
+@pytest.mark.parametrize("algorithm", [DACERF, DACER, DSAC], ids=["DACERF", "DACER", "DSAC"])
 def test_vec_normalize_statistics_are_baked_in(tmp_path, format, policy, algorithm):
     if policy == "MlpPolicy":
         vec_env = VecNormalize(make_vec_env("Pendulum-v1"), clip_obs=2.0)
     else:
         vec_env = VecNormalize(make_vec_env(lambda: SimpleMultiObsEnv(discrete_actions=False)), norm_obs_keys=["vec"])
-    model = algorithm(policy, vec_env, **(TINY if algorithm is DACERF else TINY_DACER))
+    model = algorithm(policy, vec_env, **(TINY_DACER if algorithm is DACER else TINY))
     # Statistics far from (0, 1), so that forgetting or misapplying them shows
     rng = np.random.default_rng(0)
     obs_rms = vec_env.obs_rms if policy == "MlpPolicy" else vec_env.obs_rms["vec"]
@@ -258,7 +268,7 @@ def test_command_line(tmp_path, monkeypatch, capsys):
 
 def test_clear_errors(tmp_path):
     model = make_model("MlpPolicy")
-    with pytest.raises(TypeError, match="exports DACERF and DACER models"):
+    with pytest.raises(TypeError, match="exports DACERF, DACER and DSAC models"):
         export_policy(SAC("MlpPolicy", "Pendulum-v1", buffer_size=1, policy_kwargs=dict(net_arch=[8])), tmp_path / "p.onnx")
     with pytest.raises(FileNotFoundError, match="does not exist"):
         export_policy(model, tmp_path / "missing" / "p.onnx")

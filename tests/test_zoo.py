@@ -22,7 +22,7 @@ import rl_zoo3.exp_manager  # noqa: E402
 import rl_zoo3.hyperparams_opt  # noqa: E402
 import rl_zoo3.utils  # noqa: E402
 
-from sb3_dacerf import DACER, DACERF  # noqa: E402
+from sb3_dacerf import DACER, DACERF, DSAC  # noqa: E402
 from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleLayerNorm  # noqa: E402
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS  # noqa: E402
 from sb3_dacerf.envs.dmc import DMC_ENV_IDS  # noqa: E402
@@ -30,10 +30,12 @@ from sb3_dacerf.zoo import (  # noqa: E402
     HYPERPARAMS_DIR,
     convert_dacer_params,
     convert_dacerf_params,
+    convert_dsac_params,
     default_config,
     register,
     sample_dacer_params,
     sample_dacerf_params,
+    sample_dsac_params,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -67,6 +69,8 @@ TINY_DACERF = [
 ]
 # A DACER small enough for a few hundred steps in a test
 TINY_DACER = ["learning_starts:50", "batch_size:32", "n_diffusion_steps:5", "policy_kwargs:dict(net_arch=[32, 32])"]
+# A DSAC small enough for a few hundred steps in a test
+TINY_DSAC = ["learning_starts:50", "batch_size:32", "policy_kwargs:dict(net_arch=[32, 32])"]
 
 
 def zoo_command(script: str, *args: str) -> tuple[list[str], dict[str, str]]:
@@ -106,6 +110,9 @@ def test_register_is_idempotent():
     assert rl_zoo3.utils.ALGOS["dacerf"] is DACERF and rl_zoo3.utils.ALGOS["dacer"] is DACER
     assert rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER["dacerf"] is convert_dacerf_params
     assert rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER["dacer"] is convert_dacer_params
+    assert rl_zoo3.utils.ALGOS["dsac"] is DSAC
+    assert rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER["dsac"] is convert_dsac_params
+    assert rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER["dsac"] is sample_dsac_params
     assert {"dacerf", "dacer"} <= set(rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER)
     assert rl_zoo3.exp_manager.ExperimentManager._sb3_dacerf_patched
     assert rl_zoo3.callbacks.ParallelTrainCallback._sb3_dacerf_patched
@@ -114,6 +121,7 @@ def test_register_is_idempotent():
 def test_default_config():
     assert default_config("dacerf", "Pendulum-v1") == str(HYPERPARAMS_DIR / "dacerf.yml")
     assert default_config("dacer", "Pendulum-v1") == str(HYPERPARAMS_DIR / "dacer.yml")
+    assert default_config("dsac", "DMC-walker-walk-v0") == str(HYPERPARAMS_DIR / "dsac.yml")
     assert default_config("sac", "DMC-dog-run-v0") == str(HYPERPARAMS_DIR / "sac.yml")
     assert default_config("sac", "Pendulum-v1") is None
     assert default_config("ppo", "DMC-dog-run-v0") is None
@@ -160,6 +168,29 @@ def test_dacer_yaml_entries():
     for env_id in ["Pendulum-v1", *MUJOCO_IDS, *DMC_ENV_IDS, *DRIVING_IDS]:
         driving_keys = {"normalize"} if env_id in DRIVING_IDS else set()
         assert set(dacer[env_id]) <= {"policy", "n_timesteps", "learning_starts"} | driving_keys, env_id
+
+
+def test_dsac_yaml_entries():
+    dsac = yaml.safe_load((HYPERPARAMS_DIR / "dsac.yml").read_text())
+    dacer = yaml.safe_load((HYPERPARAMS_DIR / "dacer.yml").read_text())
+    # The same environments, budgets and settings as DACER's file (each algorithm's constructor defaults)
+    assert dsac == dacer
+    dsac_args = set(inspect.signature(DSAC).parameters)
+    for env_id, entry in dsac.items():
+        assert set(entry) - ZOO_KEYS <= dsac_args, env_id
+
+
+def test_sampler_builds_dsac():
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(4):
+        trial = study.ask()
+        hyperparams = sample_dsac_params(trial, 1, 1, {}, policy_kwargs={"activation_fn": th.nn.ReLU})
+        assert convert_dsac_params(trial.params, {"activation_fn": th.nn.ReLU}) == hyperparams
+        model = DSAC("MlpPolicy", "Pendulum-v1", buffer_size=1, **hyperparams)
+        assert model.actor.log_alpha.exp().item() == pytest.approx(trial.params["initial_ent_coef"])
+        assert model.critic_loss == trial.params["critic_loss"] and model.tau_b == trial.params["tau_b"]
+        assert model.actor.activation_fn is th.nn.ReLU  # the YAML entry's policy_kwargs are kept
+        study.tell(trial, 0.0)
 
 
 def test_sampler_builds_dacer():
@@ -268,6 +299,25 @@ def test_dacer_train_and_enjoy(tmp_path):
     model = DACER.load(run / "Pendulum-v1.zip")
     assert model.actor.n_diffusion_steps == 5 and model.num_timesteps == 150
     run_args = ["--algo", "dacer", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
+    enjoy = zoo("enjoy", *run_args, "-n", "50", "--no-render", cwd=tmp_path)
+    assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
+
+
+@pytest.mark.slow  # RL Zoo in a subprocess
+def test_dsac_train_and_enjoy(tmp_path):
+    train = zoo(
+        "train",
+        *["--algo", "dsac", "--env", "Pendulum-v1", "-n", "150", "--seed", "0", "--num-threads", "1"],
+        *["--eval-freq", "100", "--eval-episodes", "1", "-f", "logs", "-params", *TINY_DSAC],
+        cwd=tmp_path,
+    )
+    assert "dsac.yml" in train.stdout and "rl_zoo3/hyperparams" not in train.stdout
+    run = tmp_path / "logs" / "dsac" / "Pendulum-v1_1"
+    for name in ["Pendulum-v1.zip", "best_model.zip", "evaluations.npz"]:
+        assert (run / name).is_file(), name
+    model = DSAC.load(run / "Pendulum-v1.zip")
+    assert model.num_timesteps == 150 and model._n_updates == 100
+    run_args = ["--algo", "dsac", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
     enjoy = zoo("enjoy", *run_args, "-n", "50", "--no-render", cwd=tmp_path)
     assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
 

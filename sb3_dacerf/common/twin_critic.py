@@ -172,7 +172,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
 
         :return: The critic loss
         """
-        critic_loss = self.critic_loss(replay_data)["loss"]
+        critic_loss = self.critic_terms(replay_data)["loss"]
         loss = self._checked(critic_loss, "critic loss", replay_data)
 
         self.critic.optimizer.zero_grad()
@@ -180,7 +180,7 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         self.critic.optimizer.step()
         return loss
 
-    def critic_loss(self, replay_data: ReplayBufferSamples) -> dict[str, th.Tensor]:
+    def critic_terms(self, replay_data: ReplayBufferSamples) -> dict[str, th.Tensor]:
         """
         The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` on a replay batch, with the Bellman target
         ``y = r + γ (1 - done) min_j Q̄_j(s', a')``, ``a' ~ π(·|s')`` (the critics themselves instead of the targets
@@ -396,7 +396,12 @@ class TwinCriticAlgorithm(OffPolicyAlgorithm):
         else:
             _, params, _ = load_from_zip_file(load_path_or_dict, device=device)
         optimizer_state = params.get("critic.optimizer") if isinstance(params, dict) else None
-        if isinstance(optimizer_state, dict) and len(optimizer_state.get("param_groups", [])) == 1:
+        # Only ensemble critics have a separate-network layout to convert from (DSAC's Gaussian critics do not)
+        if (
+            isinstance(self.critic, EnsembleCritic)
+            and isinstance(optimizer_state, dict)
+            and len(optimizer_state.get("param_groups", [])) == 1
+        ):
             saved_count = len(optimizer_state["param_groups"][0]["params"])
             current = self.critic.optimizer.param_groups[0]["params"]
             n_ensemble = sum(1 for _ in self.critic.ensemble.parameters())

@@ -1,5 +1,5 @@
 """
-Export a DACER-F or DACER policy to ONNX or TorchScript for deployment without Python, SB3 or this package.
+Export a DACER-F, DACER or DSAC policy to ONNX or TorchScript for deployment without Python, SB3 or this package.
 
 The exported graph takes the raw observation (SB3's preprocessing inside: image scaling, one-hot encoding,
 Dict features extraction, and optionally VecNormalize's observation normalisation) and returns the action
@@ -7,7 +7,8 @@ in the environment's units, as ``model.predict`` does. The generator's noise is 
 it is 0 (``deterministic=True``); given standard normal noise, the policy samples stochastically (without the
 exploration noise of rollouts). DACER-F's noise ``a0`` is the flow's starting point, ``(batch, action_dim)``; DACER's
 ``noise``, ``(batch, n_diffusion_steps, action_dim)``, holds the start and the posterior noise of each reverse step
-(:class:`sb3_dacerf.dacer.policies.DiffusionActor`). Either may have a batch of 1, shared by all the observations.
+(:class:`sb3_dacerf.dacer.policies.DiffusionActor`); DSAC's ``noise``, ``(batch, action_dim)``, is the standard normal
+``ξ`` of its tanh-Gaussian action ``tanh(μ + σ ξ)``. Any of them may have a batch of 1, shared by all the observations.
 
 The package holds the graphs (``sb3_dacerf.export.wrappers``), the ONNX and TorchScript writers
 (``sb3_dacerf.export.backends``) and the command line (``sb3_dacerf.export.cli``); everything public is imported here:
@@ -21,6 +22,7 @@ from sb3_dacerf.export.cli import load_model, main
 from sb3_dacerf.export.wrappers import (
     ExportableDiffusionPolicy,
     ExportableFlowPolicy,
+    ExportableGaussianPolicy,
     ExportablePolicy,
     check_vec_normalize,
     exportable_policy,
@@ -31,6 +33,7 @@ __all__ = [
     "SUPPORTED_OBSERVATION_SPACES",
     "ExportableDiffusionPolicy",
     "ExportableFlowPolicy",
+    "ExportableGaussianPolicy",
     "ExportablePolicy",
     "check_vec_normalize",
     "export_policy",

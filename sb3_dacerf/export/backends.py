@@ -15,6 +15,7 @@ from torch import nn
 from sb3_dacerf.common.utils import atomic_path
 from sb3_dacerf.dacer.policies import DiffusionActor
 from sb3_dacerf.dacerf.policies import FlowActor
+from sb3_dacerf.dsac.policies import GaussianActor
 from sb3_dacerf.export.wrappers import check_vec_normalize, exportable_policy
 
 EXPORT_FORMATS = ("onnx", "torchscript")
@@ -81,22 +82,24 @@ def export_policy(
     opset_version: int = 17,
 ) -> Path:
     """
-    Export the policy of a DACER-F or DACER model as a graph from raw observation to action in the environment's units.
+    Export the policy of a DACER-F, DACER or DSAC model as a graph from raw observation to action in the environment's units.
 
     ONNX: inputs ``obs`` (or one input per key of a Dict observation space, named by the key) and the noise (DACERF:
-    ``a0``, ``(batch, action_dim)``; DACER: ``noise``, ``(batch, n_diffusion_steps, action_dim)``), output ``action``,
+    ``a0``, ``(batch, action_dim)``; DACER: ``noise``, ``(batch, n_diffusion_steps, action_dim)``; DSAC: ``noise``,
+    ``(batch, action_dim)``), output ``action``,
     batch dimension dynamic. The noise defaults to zeros (an initializer that onnxruntime lets you override:
     ``session.run(None, {"obs": obs})`` is deterministic, ``{"obs": obs, "a0": a0}`` is not); a noise with a batch of 1
     is shared by all the observations. TorchScript: ``policy(obs)`` or ``policy(obs, noise)``, with ``obs`` a tensor
     or a dict of tensors. Observations have the model's observation space layout (channel-first images, as after
     ``VecTransposeImage``) and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch dimension.
 
-    :param model: A DACERF or DACER model (trained or not)
+    :param model: A DACERF, DACER or DSAC model (trained or not)
     :param path: File to write (``.onnx`` or ``.pt`` by convention); its folder must exist. The file is written
         whole or not at all: it replaces an existing one only once complete
     :param format: ``"onnx"`` or ``"torchscript"``
     :param n_sampling_steps: DACERF: number of Euler steps, fixed in the graph (the model's ``n_sampling_steps`` by
-        default). DACER: leave it out; its ``n_diffusion_steps`` reverse steps are fixed by its noise schedule
+        default). DACER: leave it out; its ``n_diffusion_steps`` reverse steps are fixed by its noise schedule. DSAC: leave
+        it out
     :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``VecNormalize.load``), if any:
         its observation normalisation is then applied inside the graph, so the graph takes raw observations; statistics
         of another observation layout are refused (:func:`check_vec_normalize`)
@@ -106,9 +109,10 @@ def export_policy(
     if format not in EXPORT_FORMATS:
         raise ValueError(f"Unknown export format {format!r}: choose one of {EXPORT_FORMATS}")
     actor = getattr(model, "actor", None)
-    if not isinstance(actor, (FlowActor, DiffusionActor)):
+    if not isinstance(actor, (FlowActor, DiffusionActor, GaussianActor)):
         raise TypeError(
-            f"export_policy exports DACERF and DACER models (whose actor is a FlowActor or a DiffusionActor), "
+            f"export_policy exports DACERF, DACER and DSAC models (whose actor is a FlowActor, a DiffusionActor or a "
+            "GaussianActor), "
             f"got a {type(model).__name__} model whose actor is a {type(actor).__name__}. "
             "For SB3's own algorithms see https://stable-baselines3.readthedocs.io/en/master/guide/export.html"
         )

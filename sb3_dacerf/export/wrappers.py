@@ -18,6 +18,7 @@ from torch import nn
 from sb3_dacerf.common.policies import GenerativeActor
 from sb3_dacerf.dacer.policies import DiffusionActor
 from sb3_dacerf.dacerf.policies import FlowActor
+from sb3_dacerf.dsac.policies import GaussianActor
 
 
 class ExportablePolicy(nn.Module, ABC):
@@ -221,6 +222,30 @@ class ExportableDiffusionPolicy(ExportablePolicy):
         return actions
 
 
+class ExportableGaussianPolicy(ExportablePolicy):
+    """
+    The deployment graph of a DSAC actor: ``tanh(μ)`` (no noise) or ``tanh(μ + σ ξ)`` (noise ``ξ``), ``μ`` and the
+    clipped ``log σ`` from one call of the actor's network, as ``GaussianActor.sample``.
+
+    :param actor: The tanh-Gaussian actor (``model.actor``)
+    :param vec_normalize: VecNormalize wrapper the model was trained with (see :class:`ExportablePolicy`)
+    """
+
+    noise_name = "noise"
+
+    actor: GaussianActor
+
+    def __init__(self, actor: GaussianActor, vec_normalize: VecNormalize | None = None):
+        super().__init__(actor, vec_normalize)
+        self.log_std_min, self.log_std_max = actor.log_std_min, actor.log_std_max
+
+    def generate(self, features: th.Tensor, noise: th.Tensor | None) -> th.Tensor:
+        mean, log_std = self.actor.network(features).chunk(2, dim=-1)
+        if noise is None:
+            return th.tanh(mean)
+        return th.tanh(mean + log_std.clamp(self.log_std_min, self.log_std_max).exp() * noise)
+
+
 def _linear(layer: nn.Module) -> nn.Linear:
     """``layer``, the first or last layer of an actor's network, as the ``nn.Linear`` the graph splits or scales."""
     if not isinstance(layer, nn.Linear):
@@ -234,13 +259,21 @@ def exportable_policy(
     """
     The deployment graph of an actor of this package.
 
-    :param actor: ``model.actor`` of a DACERF or DACER model
+    :param actor: ``model.actor`` of a DACERF, DACER or DSAC model
     :param n_sampling_steps: DACERF: number of Euler steps fixed in the graph (the actor's by default). DACER: leave it
-        out (or give the model's ``n_diffusion_steps``): the number of reverse steps is fixed by the noise schedule
+        out (or give the model's ``n_diffusion_steps``): the number of reverse steps is fixed by the noise schedule.
+        DSAC: leave it out (one network call)
     :param vec_normalize: VecNormalize wrapper the model was trained with, if any
     :raises TypeError: for another actor
-    :raises ValueError: for a DACER ``n_sampling_steps`` other than its ``n_diffusion_steps``
+    :raises ValueError: for a DACER ``n_sampling_steps`` other than its ``n_diffusion_steps``, or any for DSAC
     """
+    if isinstance(actor, GaussianActor):
+        if n_sampling_steps is not None:
+            raise ValueError(
+                f"n_sampling_steps={n_sampling_steps!r}: a DSAC policy computes its action in one network call; leave "
+                "n_sampling_steps out (a DACERF option)."
+            )
+        return ExportableGaussianPolicy(actor, vec_normalize)
     if isinstance(actor, FlowActor):
         return ExportableFlowPolicy(actor, n_sampling_steps, vec_normalize)
     if isinstance(actor, DiffusionActor):
@@ -251,7 +284,7 @@ def exportable_policy(
             )
         return ExportableDiffusionPolicy(actor, vec_normalize)
     raise TypeError(
-        f"export_policy exports DACERF and DACER models (a sb3_dacerf FlowActor or DiffusionActor), "
+        f"export_policy exports DACERF, DACER and DSAC models (a sb3_dacerf FlowActor, DiffusionActor or GaussianActor), "
         f"got an actor of type {type(actor).__name__}. "
         "For SB3's own algorithms see https://stable-baselines3.readthedocs.io/en/master/guide/export.html"
     )

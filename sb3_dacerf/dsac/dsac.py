@@ -1,0 +1,441 @@
+import math
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer, ReplayBufferSamples
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
+from stable_baselines3.common.utils import polyak_update
+from torch.nn import functional as F
+
+from sb3_dacerf.common.twin_critic import (
+    HyperparameterRule,
+    TwinCriticAlgorithm,
+    integer_at_least,
+    resolve_target_entropy,
+)
+from sb3_dacerf.common.utils import frozen
+from sb3_dacerf.dsac.policies import CnnPolicy, DSACPolicy, GaussianActor, GaussianCritic, MlpPolicy, MultiInputPolicy
+
+#: ``ε`` of the weighting of the mean and standard-deviation gradients (``bias`` in the authors' code)
+STD_EPSILON = 0.1
+#: Range of the weight ``ω̄² / (σ² + ε)`` of the ``"dsac-v2"`` critic loss
+WEIGHT_RANGE = (0.1, 10.0)
+#: ``δ`` of the Huber losses of the ``"dsac-v2"`` critic loss
+HUBER_DELTA = 50.0
+#: The sampled target is kept within ``TARGET_BOUND_SCALE · ω̄`` of the current mean (``ω̄`` the running mean σ)
+TARGET_BOUND_SCALE = 3.0
+#: The standard normal of a sampled return ``Q̄ + z σ̄`` is clipped to ``[-SAMPLE_CLIP, SAMPLE_CLIP]``
+SAMPLE_CLIP = 3.0
+#: Initial ``α`` of ``ent_coef="auto"``: ``log α = 1``, as in the authors' code (SB3's SAC starts at ``α = 1``)
+AUTO_INITIAL_ENT_COEF = math.e
+#: The critic losses: the authors' current one, and the one of GOPS and of the DSAC-T paper's equations
+CRITIC_LOSSES = ("dsac-v2", "gops")
+
+
+def distributional_targets(
+    rewards: th.Tensor,
+    discounts: th.Tensor | float,
+    next_distributions: Sequence[tuple[th.Tensor, th.Tensor]],
+    next_log_prob: th.Tensor,
+    ent_coef: float,
+    normals: Sequence[th.Tensor],
+) -> tuple[th.Tensor, th.Tensor]:
+    """
+    DSAC-T's two targets from the target critics' distributions ``N(Q̄_j, σ̄_j²)`` at ``(s', a')``: with ``j*`` the
+    critic of the smaller mean, the expected-value target ``y = r + γ' (Q̄_j* - α log π̄(a'|s'))`` and the sampled
+    target ``y_z = r + γ' (Q̄_j* + clip(z_j*, -3, 3) σ̄_j* - α log π̄(a'|s'))`` (the sample of the same critic).
+
+    :param rewards: ``r`` ``(batch, 1)``
+    :param discounts: ``γ' = γ (1 - done)`` (``γⁿ (1 - done)`` for n-step returns), ``(batch, 1)`` or a number
+    :param next_distributions: ``(Q̄_j, σ̄_j)`` of the two target critics, each ``(batch, 1)``
+    :param next_log_prob: ``log π̄(a'|s')`` ``(batch, 1)``
+    :param ent_coef: ``α``
+    :param normals: Standard normal draws ``z_j``, one ``(batch, 1)`` tensor per critic
+    :return: ``y`` and ``y_z``, each ``(batch, 1)``
+    """
+    (mean_1, std_1), (mean_2, std_2) = next_distributions
+    sample_1 = mean_1 + normals[0].clamp(-SAMPLE_CLIP, SAMPLE_CLIP) * std_1
+    sample_2 = mean_2 + normals[1].clamp(-SAMPLE_CLIP, SAMPLE_CLIP) * std_2
+    next_mean = th.min(mean_1, mean_2)
+    next_sample = th.where(mean_1 < mean_2, sample_1, sample_2)
+    entropy_bonus = -ent_coef * next_log_prob
+    return rewards + discounts * (next_mean + entropy_bonus), rewards + discounts * (next_sample + entropy_bonus)
+
+
+def bounded_target(current_mean: th.Tensor, target_sample: th.Tensor, running_std: float | th.Tensor) -> th.Tensor:
+    """
+    DSAC-T's bounded sampled target: ``y_b = Q + clip(y_z - Q, -3 ω̄, 3 ω̄)``.
+
+    :param current_mean: ``Q(s, a)``, the critic's mean (treated as a constant)
+    :param target_sample: ``y_z = r + γ (1 - done) (Q̄_z(s', a') - α log π̄(a'|s'))``, the target with a sampled return
+    :param running_std: ``ω̄``, the running mean of the critic's standard deviation
+    :return: ``y_b``, of the shape of ``current_mean``, without gradient
+    """
+    current_mean = current_mean.detach()
+    bound = TARGET_BOUND_SCALE * th.as_tensor(running_std, dtype=current_mean.dtype, device=current_mean.device)
+    return (current_mean + th.clamp(target_sample.detach() - current_mean, -bound, bound)).detach()
+
+
+def critic_loss(
+    mean: th.Tensor,
+    std: th.Tensor,
+    target_mean: th.Tensor,
+    target_bound: th.Tensor,
+    running_std: float | th.Tensor,
+    form: str = "dsac-v2",
+) -> th.Tensor:
+    """
+    The loss of one Gaussian critic ``N(Q, σ²)``, written so that its gradients are DSAC-T's: the mean follows the
+    expected-value target ``y`` (not a sampled one), the standard deviation the bounded sampled target ``y_b``, each
+    weighted with ``ε = 0.1`` so that small ``σ`` do not blow the step up.
+
+    ``"dsac-v2"`` (Jingliang-Duan/DSAC-v2 ``dsac_v2.py``): ``mean(w (huber_δ(Q, y) + σ (σ_d² - huber_δ(Q_d, y_b)) /
+    (σ_d + ε)))`` with ``w = clip(ω̄² / (σ_d² + ε), 0.1, 10)``, ``δ = 50`` and ``huber_δ(x) = x²/2`` for ``|x| <= δ``:
+    ``∂/∂Q = w (Q - y)``, ``∂/∂σ = w (σ² - (Q - y_b)²/2) / (σ + ε)`` (per sample, before the batch mean).
+
+    ``"gops"`` (GOPS ``gops/algorithm/dsact.py``, the DSAC-T paper's equations):
+    ``(ω̄² + ε) mean(-(y - Q_d) Q / (σ_d² + ε) - ((Q_d - y_b)² - σ_d²) σ / (σ_d³ + ε))``:
+    ``∂/∂Q = (ω̄² + ε) (Q - y) / (σ² + ε)``, ``∂/∂σ = (ω̄² + ε) (σ² - (Q - y_b)²) / (σ³ + ε)``.
+
+    (``_d``: treated as a constant.) Only the gradients are meaningful, not the value.
+
+    :param mean: ``Q(s, a)`` ``(batch, 1)``
+    :param std: ``σ(s, a) > 0`` ``(batch, 1)``
+    :param target_mean: ``y = r + γ (1 - done) (min_j Q̄_j(s', a') - α log π̄(a'|s'))`` ``(batch, 1)``
+    :param target_bound: ``y_b`` of :func:`bounded_target` ``(batch, 1)``
+    :param running_std: ``ω̄``, the running mean of this critic's ``σ``
+    :param form: ``"dsac-v2"`` or ``"gops"``
+    :return: The scalar loss
+    """
+    omega = th.as_tensor(running_std, dtype=mean.dtype, device=mean.device)
+    std_d = th.clamp(std, min=0.0).detach()
+    mean_d = mean.detach()
+    target_mean, target_bound = target_mean.detach(), target_bound.detach()
+    if form == "dsac-v2":
+        weight = (omega.pow(2) / (std_d.pow(2) + STD_EPSILON)).clamp(*WEIGHT_RANGE)
+        mean_term = F.huber_loss(mean, target_mean, delta=HUBER_DELTA, reduction="none")
+        std_term = std * (std_d.pow(2) - F.huber_loss(mean_d, target_bound, delta=HUBER_DELTA, reduction="none"))
+        return th.mean(weight * (mean_term + std_term / (std_d + STD_EPSILON)))
+    if form == "gops":
+        mean_term = -(target_mean - mean_d) / (std_d.pow(2) + STD_EPSILON) * mean
+        std_term = ((mean_d - target_bound).pow(2) - std_d.pow(2)) / (std_d.pow(3) + STD_EPSILON) * std
+        return (omega.pow(2) + STD_EPSILON) * th.mean(mean_term - std_term)
+    raise ValueError(f"Unknown critic loss form {form!r}: use one of {', '.join(repr(name) for name in CRITIC_LOSSES)}")
+
+
+class DSAC(TwinCriticAlgorithm):
+    """
+    Distributional Soft Actor-Critic with three refinements (DSAC-T, also called DSAC v2), the Gaussian-policy
+    baseline of the DACER-F paper.
+
+    Twin critics output a Gaussian return distribution ``N(Q_i(s, a), σ_i(s, a)²)``. The target takes the smaller of
+    the two target means, ``y = r + γ (1 - done) (min_j Q̄_j(s', a') - α log π̄(a'|s'))`` with ``a' ~ π̄(·|s')`` from
+    the target policy network, and the return sampled from the same target critic,
+    ``y_z = r + γ (1 - done) (Q̄_z(s', a') - α log π̄(a'|s'))``, ``Q̄_z = Q̄ + clip(z, -3, 3) σ̄``. Each critic's mean
+    is regressed on ``y`` (expected-value substitution), its standard deviation on ``y_b = Q + clip(y_z - Q, ±3 ω̄)``
+    with ``ω̄`` the running mean of its ``σ`` (an exponential average with coefficient ``tau_b``), and both
+    gradients are weighted by ``ω̄²`` over ``σ² + ε`` (see :func:`critic_loss`). The actor is a tanh-Gaussian
+    trained as SAC's, ``J_π = E[α log π(a|s) - min_j Q_j(s, a)]``, with SAC's entropy temperature ``α`` learned
+    towards ``target_entropy``. Actor, ``α`` and all target networks are updated once every ``policy_delay`` critic
+    updates, from gradients computed with the networks of before that update's critic step.
+
+    Papers: "Distributional Soft Actor-Critic with Three Refinements", Duan et al., IEEE TPAMI 2025
+    (arXiv:2310.05858); "Distributional Soft Actor-Critic", Duan et al., IEEE TNNLS 2021. Authors' code:
+    https://github.com/Jingliang-Duan/DSAC-v2 (``dsac_v2.py``) and GOPS (``gops/algorithm/dsact.py``).
+
+    The defaults are the authors' (``dsac_v2.py``, ``networks/mlp.py`` and ``example_train/`` there): learning rate
+    1e-4 for the actor and the critics, 3e-4 for ``α``, ``log α`` starting at 1, ``target_entropy = -dim(A)``,
+    3 x 256 GELU networks, ``log σ`` of the actor clipped to [-20, 0.5], ``tau = tau_b = 0.005``, policy delay 2,
+    ``γ = 0.99``, batch 256. Where this class departs from that code (SB3's conventions: ``learning_starts``, one
+    environment step per gradient step, actions scaled to [-1, 1]) the documentation page lists it with the commit
+    it was checked against.
+
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
+    :param env: The environment to learn from (if registered in Gym, can be str)
+    :param learning_rate: learning rate for the optimizer of the actor and of the critics (1e-4, the authors';
+        SB3's SAC uses 3e-4), it can be a function of the current progress remaining (from 1 to 0)
+    :param buffer_size: size of the replay buffer
+    :param learning_starts: how many steps of the model to collect transitions for before learning starts
+    :param batch_size: Minibatch size for each gradient update
+    :param tau: the soft update coefficient ("Polyak update", between 0 and 1) of the target critics and of the
+        target policy
+    :param gamma: the discount factor
+    :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
+        like ``(5, "step")`` or ``(2, "episode")``.
+    :param gradient_steps: How many gradient steps to do after each rollout (see ``train_freq``)
+        Set to ``-1`` means to do as many gradient steps as steps done in the environment
+        during the rollout.
+    :param action_noise: the action noise type (None by default), added to the policy's samples during rollouts
+    :param replay_buffer_class: Replay buffer class to use (for instance ``HerReplayBuffer``).
+        If ``None``, it will be automatically selected.
+    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
+        at a cost of more complexity.
+    :param n_steps: When n_step > 1, uses n-step return (with the NStepReplayBuffer) when updating the Q-value network.
+    :param ent_coef: Entropy temperature ``α``: ``"auto"`` learns it from ``α = e`` (``log α = 1``, the authors'
+        start), ``"auto_<x>"`` from ``α = x > 0`` (``"auto_1"`` is SB3's SAC), a number ``>= 0`` keeps it fixed
+    :param target_entropy: Target entropy when ``α`` is learned; ``"auto"`` is ``-dim(A)``
+    :param alpha_learning_rate: Learning rate (Adam) of ``log α`` (3e-4, the authors')
+    :param policy_delay: The actor, ``α`` and the target networks are updated once every ``policy_delay`` critic
+        updates (at the first update, then every ``policy_delay``, as the authors' iteration counter from 0)
+    :param tau_b: Coefficient of the running mean ``ω̄`` of each critic's standard deviation,
+        ``ω̄ <- (1 - tau_b) ω̄ + tau_b mean(σ)`` (``ω̄`` starts at the first batch's mean); ``None``: ``tau``, as
+        in the authors' code
+    :param critic_loss: ``"dsac-v2"`` (the authors' current loss, with Huber terms and a clipped weight) or
+        ``"gops"`` (the loss of GOPS and of the DSAC-T paper's equations): see :func:`critic_loss`
+    :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
+        the reported success rate, mean episode length, and mean reward over
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
+        ``dict(net_arch=[256, 256], activation_fn=nn.ReLU, log_std_max=2)``
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
+        debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run.
+        Setting it to auto, the code will be run on the GPU if possible.
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+    #: DSAC's own hyper-parameters with their valid values, besides those of every algorithm of the package
+    hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
+        **TwinCriticAlgorithm.hyperparameter_rules,
+        "policy_delay": integer_at_least(1),
+        "alpha_learning_rate": HyperparameterRule(lambda value: value > 0, "> 0"),
+        "tau_b": HyperparameterRule(lambda value: 0 < value <= 1, "in (0, 1], or None for tau"),
+    }
+    policy: DSACPolicy
+    actor: GaussianActor
+    actor_target: GaussianActor
+    # Gaussian critics (a mean and a standard deviation per critic), not the Q-value ensemble of the base class
+    critic: GaussianCritic  # type: ignore[assignment]
+    critic_target: GaussianCritic  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        policy: str | type[DSACPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 1e-4,
+        buffer_size: int = 1_000_000,  # 1e6
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        ent_coef: str | float = "auto",
+        target_entropy: str | float = "auto",
+        alpha_learning_rate: float = 3e-4,
+        policy_delay: int = 2,
+        tau_b: float | None = None,
+        critic_loss: str = "dsac-v2",
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+        )
+        self.ent_coef = ent_coef
+        self.target_entropy = target_entropy
+        self.alpha_learning_rate = alpha_learning_rate
+        self.policy_delay = policy_delay
+        self.tau_b = tau if tau_b is None else tau_b
+        self.critic_loss = critic_loss
+        self.ent_coef_optimizer: th.optim.Adam | None = None
+        #: Running means ``ω̄_i`` of the critics' standard deviations (``None`` before the first update)
+        self.running_std: list[float] | None = None
+
+        if _init_setup_model:
+            self._setup_model()
+
+    def _check_hyperparameters(self) -> None:
+        super()._check_hyperparameters()
+        if self.critic_loss not in CRITIC_LOSSES:
+            raise ValueError(
+                f"Invalid critic_loss={self.critic_loss!r}: it must be one of {', '.join(repr(name) for name in CRITIC_LOSSES)}"
+            )
+        self._initial_ent_coef()  # raises for an invalid ent_coef
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self.target_entropy = resolve_target_entropy(self.target_entropy, -float(get_action_dim(self.action_space)))
+        initial_ent_coef = self._initial_ent_coef()
+        # log α lives in the actor (saved with the policy); only ent_coef_optimizer changes it
+        self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
+        if isinstance(self.ent_coef, str):
+            self.ent_coef_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.alpha_learning_rate)
+
+    def _create_aliases(self) -> None:
+        super()._create_aliases()
+        self.actor_target = self.policy.actor_target
+
+    def _initial_ent_coef(self) -> float:
+        """The initial ``α`` of ``ent_coef``; a ``ValueError`` naming the valid values for anything else."""
+        value: Any = self.ent_coef
+        error = (
+            f"Invalid ent_coef={self.ent_coef!r}: it must be 'auto' (learned from α = e, the authors' log α = 1), "
+            "'auto_<initial α > 0>' (e.g. 'auto_1', SB3's SAC start) or a number >= 0 (a fixed α)."
+        )
+        if isinstance(value, str):
+            if value == "auto":
+                return AUTO_INITIAL_ENT_COEF
+            if not value.startswith("auto_"):
+                raise ValueError(error)
+            try:
+                value = float(value[len("auto_") :])
+            except ValueError:
+                raise ValueError(error) from None
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(error)
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not (0 <= value < math.inf):
+            raise ValueError(error)
+        return float(value)
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        # Switch to train mode (this affects batch norm / dropout)
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+        assert self.replay_buffer is not None, "train() needs the replay buffer that _setup_model() creates"
+
+        logs: dict[str, list[float]] = {}
+        for _ in range(gradient_steps):
+            self._n_updates += 1
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
+            for key, value in self._update(replay_data).items():
+                logs.setdefault(key, []).append(value)
+
+        self.logger.record("train/n_updates", self._n_updates)
+        self.logger.record("train/ent_coef", self.actor.log_alpha.exp().item())
+        for key, values in logs.items():
+            self.logger.record(f"train/{key}", np.mean(values))
+        if self.running_std is not None:
+            for index, value in enumerate(self.running_std, start=1):
+                self.logger.record(f"train/running_std{index}", value)
+
+    def _update(self, replay_data: ReplayBufferSamples) -> dict[str, float]:
+        """
+        One DSAC-T update: the critics' step, and every ``policy_delay`` updates the actor's, ``α``'s and the target
+        networks'. All gradients are computed before any step, as in the authors' code.
+
+        :return: The values to log
+        """
+        # The actor, α and the targets move at the first update, then every `policy_delay` (the authors' counter from 0)
+        update_actor = (self._n_updates - 1) % self.policy_delay == 0
+        # For n-step replay, discount factor is gamma**n_steps (when no early termination)
+        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+        ent_coef = self.actor.log_alpha.exp().item()
+
+        with th.no_grad():
+            # a' ~ π̄(·|s') from the target policy; both target critics' distributions at (s', a')
+            next_actions, next_log_prob = self.actor_target.action_log_prob(replay_data.next_observations)
+            (next_mean_1, next_std_1), (next_mean_2, next_std_2) = self.critic_target.distributions(
+                replay_data.next_observations, next_actions
+            )
+            normals = [th.randn_like(next_mean_1), th.randn_like(next_mean_2)]
+            target_mean, target_sample = distributional_targets(
+                replay_data.rewards,
+                (1 - replay_data.dones) * discounts,
+                ((next_mean_1, next_std_1), (next_mean_2, next_std_2)),
+                next_log_prob.reshape(-1, 1),
+                ent_coef,
+                normals,
+            )
+
+        distributions = self.critic.distributions(replay_data.observations, replay_data.actions)
+        batch_stds = [std.detach().mean().item() for _, std in distributions]
+        if self.running_std is None:
+            self.running_std = batch_stds
+        else:
+            self.running_std = [
+                (1 - self.tau_b) * old + self.tau_b * new for old, new in zip(self.running_std, batch_stds, strict=True)
+            ]
+        losses = [
+            critic_loss(mean, std, target_mean, bounded_target(mean, target_sample, omega), omega, self.critic_loss)
+            for (mean, std), omega in zip(distributions, self.running_std, strict=True)
+        ]
+        loss = losses[0] + losses[1]
+        logs = {"critic_loss": self._checked(loss, "critic loss", replay_data)}
+        for index, (mean, std) in enumerate(distributions, start=1):
+            logs[f"q{index}_mean"] = mean.detach().mean().item()
+            logs[f"q{index}_std"] = std.detach().mean().item()
+
+        self.critic.optimizer.zero_grad()
+        loss.backward()
+
+        log_prob: th.Tensor | None = None
+        if update_actor:
+            # J_π = E[α log π(a|s) - min_j Q_j(s, a)], a ~ π(·|s) reparameterised; the critics receive no gradient
+            actions, log_prob = self.actor.action_log_prob(replay_data.observations)
+            with frozen(self._critic_parameters()):
+                actor_loss = (ent_coef * log_prob.reshape(-1, 1) - self._min_q(replay_data.observations, actions)).mean()
+            logs["actor_loss"] = self._checked(actor_loss, "actor loss", replay_data)
+            logs["entropy"] = -log_prob.detach().mean().item()
+            self.actor.optimizer.zero_grad()
+            actor_loss.backward()
+
+        self.critic.optimizer.step()
+        if update_actor:
+            assert log_prob is not None
+            self.actor.optimizer.step()
+            if self.ent_coef_optimizer is not None:
+                # J(α) = -log α E[log π + H_target]: ∂J/∂log α = -(E[log π] + H_target) = H - H_target
+                ent_coef_gradient = -(log_prob.detach().mean().item() + float(self.target_entropy))
+                self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, ent_coef_gradient)
+                self.ent_coef_optimizer.step()
+                logs["ent_coef_loss"] = self.actor.log_alpha.item() * ent_coef_gradient
+            self._update_targets()
+        return logs
+
+    def _update_targets(self) -> None:
+        """Polyak update of the target critics and of the target policy: ``θ̄ <- (1 - τ) θ̄ + τ θ``."""
+        super()._update_targets()
+        polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "actor_target"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, saved_variables = super()._get_torch_save_params()
+        if self.ent_coef_optimizer is not None:
+            state_dicts = [*state_dicts, "ent_coef_optimizer"]
+        return state_dicts, saved_variables

@@ -1,0 +1,282 @@
+import math
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN, create_mlp
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+from torch.nn import functional as F
+
+from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
+
+#: Added to ``1 - tanh(u)²`` in the log-density of a tanh-squashed action, as in the authors' code and SB3
+TANH_EPSILON = 1e-6
+
+
+class GaussianActor(GenerativeActor):
+    """
+    Tanh-Gaussian actor of DSAC: ``a = tanh(u)``, ``u ~ N(μ(s), σ(s)²)``, with ``μ`` and ``log σ`` the two halves of
+    the output of one network (:attr:`network`, ``2 · action_dim`` outputs, as the authors' ``mlp_shared`` policy)
+    and ``log σ`` clipped to ``[log_std_min, log_std_max]``.
+
+    As a :class:`sb3_dacerf.common.policies.GenerativeActor` it turns noise into actions: :meth:`sample` with
+    ``noise = ξ ~ N(0, I)`` is ``tanh(μ + σ ξ)`` (the reparameterised sample), and ``noise=None`` gives ``tanh(μ)``,
+    the deterministic action. The Gaussian is the exploration: no noise is added on top (:attr:`exploration_std`
+    is 0). ``log_alpha`` holds ``log α`` of the entropy temperature, set and learned by the algorithm.
+
+    Takes the arguments of :class:`sb3_dacerf.common.policies.GenerativeActor` (``observation_space``,
+    ``action_space``, ``net_arch``, ``features_extractor``, ``features_dim``, ``activation_fn``,
+    ``normalize_images``; ``exploration_noise_scale`` must stay 0) and:
+
+    :param log_std_min: Lower clip of ``log σ`` (-20, the authors' and SB3's)
+    :param log_std_max: Upper clip of ``log σ`` (0.5, the authors'; SB3's SAC uses 2)
+    """
+
+    def __init__(
+        self,
+        *args: Any,
+        log_std_min: float = -20.0,
+        log_std_max: float = 0.5,
+        **kwargs: Any,
+    ):
+        kwargs.setdefault("exploration_noise_scale", 0.0)
+        super().__init__(*args, **kwargs)
+        if self.exploration_noise_scale != 0.0:
+            raise ValueError(
+                f"GaussianActor explores by its own standard deviation: exploration_noise_scale="
+                f"{self.exploration_noise_scale!r} must be 0 (use action_noise for extra noise)"
+            )
+        if not (math.isfinite(log_std_min) and math.isfinite(log_std_max) and log_std_min < log_std_max):
+            raise ValueError(
+                f"Invalid log_std_min={log_std_min!r}, log_std_max={log_std_max!r}: they must be finite numbers with "
+                "log_std_min < log_std_max (the authors' are -20 and 0.5)"
+            )
+        self.log_std_min = float(log_std_min)
+        self.log_std_max = float(log_std_max)
+        self.network = nn.Sequential(*create_mlp(self.features_dim, 2 * self.action_dim, self.net_arch, self.activation_fn))
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(log_std_min=self.log_std_min, log_std_max=self.log_std_max)
+        return data
+
+    @property
+    def noise_shape(self) -> tuple[int, ...]:
+        """``(action_dim,)``: the standard normal ``ξ`` of ``u = μ + σ ξ``."""
+        return (self.action_dim,)
+
+    @property
+    def exploration_std(self) -> th.Tensor:
+        """0: the Gaussian's own ``σ`` explores, nothing is added."""
+        return th.zeros_like(self.log_alpha)
+
+    def add_exploration_noise(self, actions: th.Tensor) -> th.Tensor:
+        """:return: ``actions`` itself (the Gaussian's own ``σ`` explores; no random number is drawn)"""
+        return actions
+
+    def distribution_parameters(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :param features: State features ``(batch, features_dim)``
+        :return: ``μ`` and the clipped ``log σ`` of the Gaussian before the tanh, each ``(batch, action_dim)``
+        """
+        mean, log_std = self.network(features).chunk(2, dim=-1)
+        return mean, log_std.clamp(self.log_std_min, self.log_std_max)
+
+    def sample(self, features: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
+        """
+        :param features: State features ``(batch, features_dim)``
+        :param noise: ``ξ`` ``(batch, action_dim)`` (or a batch of 1); ``None`` for the deterministic ``tanh(μ)``
+        :return: ``tanh(μ + σ ξ)`` in [-1, 1], differentiable with respect to the network
+        """
+        mean, log_std = self.distribution_parameters(features)
+        if noise is None:
+            return th.tanh(mean)
+        return th.tanh(mean + log_std.exp() * noise)
+
+    def sample_with_log_prob(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        A reparameterised sample and its log-density.
+
+        :param features: State features ``(batch, features_dim)``
+        :return: Actions ``a = tanh(u)`` in [-1, 1] ``(batch, action_dim)`` and ``log π(a|s) = log N(u; μ, σ²) -
+            Σ log(1 - tanh(u)² + 1e-6)`` ``(batch,)``, both differentiable with respect to the network
+        """
+        mean, log_std = self.distribution_parameters(features)
+        std = log_std.exp()
+        gaussian = mean + std * th.randn_like(mean)
+        actions = th.tanh(gaussian)
+        log_prob = th.distributions.Normal(mean, std).log_prob(gaussian).sum(dim=-1)
+        log_prob = log_prob - th.log(1 - actions.pow(2) + TANH_EPSILON).sum(dim=-1)
+        return actions, log_prob
+
+    def action_log_prob(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
+        """
+        SB3's name (``sac.policies.Actor.action_log_prob``) of :meth:`sample_with_log_prob` from observations.
+
+        :param obs: Observations
+        :return: Actions in [-1, 1] ``(batch, action_dim)`` and their log-density ``(batch,)``
+        """
+        return self.sample_with_log_prob(self.extract_features(obs, self.features_extractor))
+
+
+class GaussianCritic(ContinuousCritic):
+    """
+    Twin distributional critics of DSAC: each network outputs the mean ``Q(s, a)`` and the standard deviation
+    ``σ(s, a) = softplus(·)`` of a Gaussian return distribution (the authors' ``ActionValueDistri``).
+
+    Called like SB3's ``ContinuousCritic`` it returns the means only, one ``(batch, 1)`` tensor per network, so that
+    code written for a Q-function (``min_q``, ``q1_forward``) reads the expected values; :meth:`distributions`
+    returns the means and the standard deviations. Same arguments as ``ContinuousCritic``, and:
+
+    :param layer_norm: ``LayerNorm`` after every hidden linear layer (before the activation)
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        n_critics: int = 2,
+        share_features_extractor: bool = True,
+        layer_norm: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            net_arch,
+            features_extractor,
+            features_dim,
+            activation_fn=activation_fn,
+            normalize_images=normalize_images,
+            n_critics=n_critics,
+            share_features_extractor=share_features_extractor,
+        )
+        input_dim = features_dim + get_action_dim(action_space)
+        # Rebuilt with two outputs (mean, pre-softplus σ); a ModuleList, as sb3_dacerf's other critics
+        self.q_networks = nn.ModuleList()  # type: ignore[assignment]
+        for idx in range(n_critics):
+            layers = create_mlp(input_dim, 2, net_arch, activation_fn, post_linear_modules=[nn.LayerNorm] if layer_norm else None)
+            q_net = nn.Sequential(*layers)
+            self.add_module(f"qf{idx}", q_net)
+            self.q_networks.append(q_net)
+
+    def distributions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[tuple[th.Tensor, th.Tensor], ...]:
+        """
+        :param obs: Observations
+        :param actions: Actions in [-1, 1]
+        :return: One ``(mean, std)`` pair per network, each ``(batch, 1)``; ``std = softplus(·) > 0``
+        """
+        with th.set_grad_enabled(not self.share_features_extractor):
+            features = self.extract_features(obs, self.features_extractor)
+        qvalue_input = th.cat([features, actions], dim=1)
+        outputs = []
+        for q_net in self.q_networks:
+            mean, raw_std = q_net(qvalue_input).chunk(2, dim=-1)
+            outputs.append((mean, F.softplus(raw_std)))
+        return tuple(outputs)
+
+    def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
+        return tuple(mean for mean, _ in self.distributions(obs, actions))
+
+    def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        with th.no_grad():
+            features = self.extract_features(obs, self.features_extractor)
+        return self.q_networks[0](th.cat([features, actions], dim=1))[:, :1]
+
+
+class DSACPolicy(TwinCriticPolicy):
+    """
+    Policy class (tanh-Gaussian actor, twin Gaussian critics, and target networks of both) for DSAC.
+
+    Takes the arguments of :class:`sb3_dacerf.common.policies.TwinCriticPolicy` (``net_arch``, ``activation_fn``,
+    ``features_extractor_class``, ``optimizer_class``, ``n_critics``, ``share_features_extractor``,
+    ``critic_layer_norm``, ...), with the authors' networks by default (``net_arch=[256, 256, 256]``,
+    ``activation_fn=nn.GELU``), and:
+
+    :param log_std_min: Lower clip of the actor's ``log σ``
+    :param log_std_max: Upper clip of the actor's ``log σ``
+    """
+
+    actor_class = GaussianActor
+    actor: GaussianActor
+    actor_target: GaussianActor
+    # Gaussian critics (a mean and a standard deviation per critic), not the Q-value ensemble of the base class
+    critic: GaussianCritic  # type: ignore[assignment]
+    critic_target: GaussianCritic  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        *,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.GELU,
+        log_std_min: float = -20.0,
+        log_std_max: float = 0.5,
+        n_critics: int = 2,
+        critic_batch_renorm: bool = False,
+        **kwargs: Any,
+    ):
+        if critic_batch_renorm:
+            raise ValueError(
+                "DSAC does not support critic_batch_renorm=True: its targets come from the target critics' return "
+                "distributions. Use critic_layer_norm=True for normalised critics, or DACERF for CrossQ's critics."
+            )
+        if n_critics != 2:
+            raise ValueError(
+                f"DSAC has exactly two critics (the target takes the smaller of two means with its sample): "
+                f"n_critics={n_critics!r} must be 2"
+            )
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch=[256, 256, 256] if net_arch is None else net_arch,
+            activation_fn=activation_fn,
+            n_critics=n_critics,
+            actor_kwargs=dict(log_std_min=log_std_min, log_std_max=log_std_max),
+            **kwargs,
+        )
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        super()._build(lr_schedule)
+        # Target policy network of DSAC-T: a' ~ π̄(·|s') in the critic target
+        actor_target = self.make_actor(features_extractor=None)
+        assert isinstance(actor_target, GaussianActor)  # actor_class
+        self.actor_target = actor_target
+        self.actor_target.load_state_dict(self.actor.state_dict())
+        self.actor_target.set_training_mode(False)
+
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> GaussianCritic:  # type: ignore[override]  # a GaussianCritic is a ContinuousCritic
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        return GaussianCritic(**critic_kwargs, layer_norm=self.critic_layer_norm).to(self.device)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update({key: self.actor_kwargs[key] for key in ("log_std_min", "log_std_max")})
+        return data
+
+
+MlpPolicy = DSACPolicy
+
+
+class CnnPolicy(DSACPolicy):
+    """DSAC policy for image observations: :class:`DSACPolicy` with ``features_extractor_class=NatureCNN`` by default."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+class MultiInputPolicy(DSACPolicy):
+    """DSAC policy for Dict observations: :class:`DSACPolicy` with ``features_extractor_class=CombinedExtractor``."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
