@@ -88,6 +88,9 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # fewer, larger Langevin steps with the same total drift and noise (N_l * eta = 0.6, N_l * eta * alpha fixed)
     "dacerf-langevin5": ("DACERF", dict(langevin_steps=5, langevin_step_size=0.12)),
     "dacerf-langevin10": ("DACERF", dict(langevin_steps=10, langevin_step_size=0.06)),
+    # the actor's clamp to [-1, 1] with the identity's gradient (straight-through) instead of a zero gradient in
+    # saturated coordinates; a measurement, not an option of the package (see straight_through_policy)
+    "dacerf-straight-through": ("DACERF", dict(policy="straight-through")),
     "dacerf-nstep3": ("DACERF", dict(n_steps=3)),  # 3-step returns in the critic targets (SB3's NStepReplayBuffer)
     "dacerf-utd2": ("DACERF", dict(gradient_steps=2)),  # two gradient steps per environment step (twice the updates)
     "dacerf-tau001": ("DACERF", dict(tau=0.001)),
@@ -122,6 +125,23 @@ def algorithm_class(name: str) -> type:
 
         return getattr(sb3_contrib, name)
     return getattr(sb3_dacerf, name)
+
+
+def straight_through_policy() -> type:
+    """DACERFPolicy whose actor clamps its actions to [-1, 1] straight-through: forward a clamp, backward the identity."""
+    from sb3_dacerf.dacerf.policies import DACERFPolicy, FlowActor
+
+    class StraightThroughFlowActor(FlowActor):
+        def squash(self, actions: Any) -> Any:
+            return actions + (actions.clamp(-1.0, 1.0) - actions).detach()
+
+    class StraightThroughDACERFPolicy(DACERFPolicy):
+        actor_class = StraightThroughFlowActor
+
+    return StraightThroughDACERFPolicy
+
+
+POLICIES = {"straight-through": straight_through_policy}
 
 
 def run_file(out: Path, env_id: str, variant: str, seed: int) -> Path:
@@ -291,7 +311,8 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     if "action_noise_std" in kwargs:
         dim = env.action_space.shape[0]
         kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
-    return algorithm("MlpPolicy", env, seed=job["seed"], device=job["device"], **kwargs)
+    policy = POLICIES[kwargs.pop("policy")]() if "policy" in kwargs else "MlpPolicy"
+    return algorithm(policy, env, seed=job["seed"], device=job["device"], **kwargs)
 
 
 def check_regime(model: Any, job: dict[str, Any], folder: Path) -> None:

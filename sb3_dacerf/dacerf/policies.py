@@ -78,6 +78,18 @@ class FlowActor(GenerativeActor):
         for k in range(self.n_sampling_steps):
             time = th.full((noise.shape[0], 1), k * step, device=noise.device, dtype=noise.dtype)
             actions = actions + step * self.velocity(features, actions, time)
+        return self.squash(actions)
+
+    def squash(self, actions: th.Tensor) -> th.Tensor:
+        """
+        Bring the flow's end point into [-1, 1]: a hard clamp, whose gradient is zero in every saturated
+        coordinate (the actor's ``-Q`` term does not move a coordinate the flow has pushed past a bound; the
+        flow-matching term, which trains the velocity directly, still does). Measured against a straight-through
+        clamp in ``benchmarks/learning.md`` ("The clamp").
+
+        :param actions: End points of the flow ``(batch, action_dim)``
+        :return: Actions in [-1, 1]
+        """
         return actions.clamp(-1.0, 1.0)
 
 
