@@ -68,7 +68,7 @@ def saved_algorithm(model_path: Path) -> str | None:
     The algorithm of the policy class saved in a model zip, as a lower-case name (``dacerf``, ``sac``, ``dacer``,
     ``td3``...), ``None`` if it cannot be read.
     """
-    from sb3_dacerf.common.twin_critic import saved_policy_class
+    from sb3_dacerf.common.persistence import saved_policy_class
 
     policy_class = saved_policy_class(model_path)
     parts = policy_class.__module__.split(".") if policy_class is not None else []

@@ -74,6 +74,21 @@ def test_hyperparameter_rules_belong_to_their_algorithm(model_class):
     assert (set(DACER.hyperparameter_rules) - shared) & (set(DACERF.hyperparameter_rules) - shared) == {"policy_delay"}
 
 
+def test_checks_and_persistence_still_import_from_twin_critic():
+    """The checks and the saving and loading have their own modules; the names they had in twin_critic still work."""
+    from sb3_dacerf.common import persistence, twin_critic, validation
+
+    for name in twin_critic.__all__:
+        home = persistence if hasattr(persistence, name) else validation if hasattr(validation, name) else twin_critic
+        assert getattr(twin_critic, name) is getattr(home, name), name
+    assert {"NonFiniteLossError", "HyperparameterRule", "saved_policy_class", "check_action_space"} <= set(twin_critic.__all__)
+    # What each part overrides of SB3's OffPolicyAlgorithm is what the algorithm runs
+    parts = {"save": persistence.TwinCriticPersistence, "load": persistence.TwinCriticPersistence}
+    parts.update(set_parameters=persistence.TwinCriticPersistence, predict=validation.TwinCriticChecks)
+    for method, part in parts.items():
+        assert next(cls for cls in TwinCriticAlgorithm.__mro__ if method in vars(cls)) is part, method
+
+
 @pytest.mark.parametrize(
     "name, value",
     [

@@ -18,7 +18,7 @@ from conftest import fast_settings
 from rl_zoo3.callbacks import ParallelTrainCallback
 
 from sb3_dacerf import DACER, DACERF
-from sb3_dacerf.common.twin_critic import NonFiniteLossError
+from sb3_dacerf.common.validation import NonFiniteLossError
 from sb3_dacerf.zoo import ParallelTraining, register
 
 # Patched by the start-up hook when it is installed; register() is idempotent

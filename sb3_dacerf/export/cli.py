@@ -9,7 +9,7 @@ import argparse
 import pickle
 from pathlib import Path
 
-from sb3_dacerf.common.twin_critic import saved_policy_class
+from sb3_dacerf.common.persistence import saved_policy_class
 from sb3_dacerf.dacer.dacer import DACER
 from sb3_dacerf.dacer.policies import DACERPolicy, DiffusionActor
 from sb3_dacerf.dacerf.dacerf import DACERF
