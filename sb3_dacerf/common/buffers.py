@@ -46,7 +46,7 @@ class DemonstrationSamples(ReplayBufferSamples):
     def imitation_targets(self, targets: th.Tensor, weights: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
         The flow-matching targets DACERF fits on this batch, and their weights (see
-        :meth:`sb3_dacerf.DACERF.imitation_targets`).
+        :meth:`sb3_dacerf.dacerf.dacerf.DACERF.imitation_targets`).
 
         :param targets: The Langevin targets ``a*`` of every transition ``(batch, action_dim)``
         :param weights: Their weights ``λ_f`` ``(batch, 1)``

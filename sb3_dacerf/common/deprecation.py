@@ -48,10 +48,13 @@ def critic_from_flags(policy_kwargs: dict[str, Any], owner: str) -> dict[str, An
     return converted
 
 
-def policy_kwarg_from_argument(policy_kwargs: dict[str, Any], name: str, value: Any, owner: str) -> dict[str, Any]:
+def policy_kwarg_from_argument(
+    policy_kwargs: dict[str, Any], name: str, value: Any, owner: str, stacklevel: int = 4
+) -> dict[str, Any]:
     """
     ``name`` given to the algorithm's constructor, where it is deprecated (it is a policy argument): a
-    ``FutureWarning``, and a copy of ``policy_kwargs`` holding it.
+    ``FutureWarning`` (``stacklevel`` as for :func:`warnings.warn`, counted from :func:`warn_renamed`), and a copy
+    of ``policy_kwargs`` holding it.
 
     :raises ValueError: when ``policy_kwargs`` holds another value of ``name`` (neither silently wins)
     """
@@ -60,7 +63,7 @@ def policy_kwarg_from_argument(policy_kwargs: dict[str, Any], name: str, value: 
             f"{owner}: {name}={value!r} and policy_kwargs=dict({name}={policy_kwargs[name]!r}) disagree: "
             f"give it once, as policy_kwargs=dict({name}=...)."
         )
-    warn_renamed(f"{owner}({name}=...)", f"policy_kwargs=dict({name}={value!r})", stacklevel=4)
+    warn_renamed(f"{owner}({name}=...)", f"policy_kwargs=dict({name}={value!r})", stacklevel=stacklevel)
     return {**policy_kwargs, name: value}
 
 

@@ -546,7 +546,9 @@ def convert_removed_arguments(
     arguments = dict(arguments)
     policy_kwargs, replay_buffer_kwargs = dict(policy_kwargs), dict(replay_buffer_kwargs)
     if "n_sampling_steps" in arguments:
-        policy_kwargs = policy_kwarg_from_argument(policy_kwargs, "n_sampling_steps", arguments.pop("n_sampling_steps"), "DACERF")
+        policy_kwargs = policy_kwarg_from_argument(
+            policy_kwargs, "n_sampling_steps", arguments.pop("n_sampling_steps"), "DACERF", stacklevel=5
+        )
     if "compile_langevin" in arguments:
         compile_langevin = arguments.pop("compile_langevin")
         if compile_langevin or not saved_model:
