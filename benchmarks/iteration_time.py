@@ -19,12 +19,9 @@ and SAC, 1,000 steps under cProfile at humanoid sizes, batch 256; ``--breakdown-
 walker-walk, in alternating blocks of 400 steps in this process (``step_breakdown.learn_ratio``;
 ``--learn-blocks 0`` skips it). ``--skip-grid`` prints these two only.
 
-``--compile`` adds "DACERF compiled": DACERF with ``compile_langevin=True`` (the Langevin loop through
-``torch.compile``; the compilation, ~30 s per size and batch on a CPU, happens in the warm-up and is not timed).
-
 Usage::
 
-    python benchmarks/iteration_time.py [--quick] [--compile] [--device cpu|cuda] [--threads 1] [--clock wall|cpu] [--rounds 40]
+    python benchmarks/iteration_time.py [--quick] [--device cpu|cuda] [--threads 1] [--clock wall|cpu] [--rounds 40]
                                         [--sizes ...] [--batch-sizes 256 512] [--skip-grid] [--breakdown-updates 1000]
                                         [--learn-blocks 10]
 """
@@ -61,7 +58,6 @@ from sb3_dacerf import DACER
 LEARN_BLOCK = 400  # environment steps per timed learn() block
 GRADIENT_STEPS = 6  # a multiple of DACERF's policy delay (3) and DACER's (2)
 BUFFER_SIZE = 10_000
-COMPILED = "DACERF compiled"
 # DACER against DACERF: (label, DACER configuration)
 COMPARISONS = {"own activations (DACER Mish, DACERF ReLU)": "DACER", "equal activation (both ReLU)": "DACER (ReLU)"}
 # DACER-F paper, "Time Efficiency": 70.1 ms (DACER), 20.8 ms (DACER-F), 11.7 ms (DSAC) per training step
@@ -86,13 +82,11 @@ def measure(
     obs_dim: int, action_dim: int, batch_size: int, device: str, rounds: int, names: list[str], clock: str = "wall"
 ) -> dict[str, float]:
     """Median seconds per gradient step of each configuration, and DACER's entropy estimate (seconds per call)."""
-    models = {name: ready_to_train(name, obs_dim, action_dim, device) for name in names if name != COMPILED}
-    if COMPILED in names:
-        models[COMPILED] = ready_to_train("DACERF", obs_dim, action_dim, device, compile_langevin=True)
+    models = {name: ready_to_train(name, obs_dim, action_dim, device) for name in names}
     calls = {
         name: (lambda m=model: m.train(gradient_steps=GRADIENT_STEPS, batch_size=batch_size)) for name, model in models.items()
     }
-    # Warm-up (and compilation); it also runs DACER's first entropy estimate (update 1), so that the timed rounds hold none
+    # Warm-up; it also runs DACER's first entropy estimate (update 1), so that the timed rounds hold none
     interleaved_medians(calls, 2, synchronize=device == "cuda")
     medians = {
         name: value / GRADIENT_STEPS for name, value in interleaved_medians(calls, rounds, device == "cuda", clock).items()
@@ -138,7 +132,6 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=40, help="timed rounds per (size, batch)")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES), metavar="SIZE", help=f"of {list(SIZES)}")
-    parser.add_argument("--compile", action="store_true", help="also time DACERF with compile_langevin=True")
     parser.add_argument("--skip-grid", action="store_true", help="only the breakdown and the learn() ratios")
     parser.add_argument("--breakdown-updates", type=int, default=1000, help="gradient steps profiled per algorithm (0: none)")
     parser.add_argument(
@@ -148,7 +141,7 @@ def main() -> None:
     args = parser.parse_args()
     apply_common_arguments(parser, args, plot="iteration_time.png")
     rounds, batch_sizes = (5, [256]) if args.quick else (args.rounds, args.batch_sizes)
-    names = [*CONFIGURATIONS, *([COMPILED] if args.compile else [])]
+    names = list(CONFIGURATIONS)
     dacerfs = [name for name in names if name.startswith("DACERF")]
 
     header = (

@@ -64,27 +64,24 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # ablations of the defaults, one change each
     "dacerf-noreg": ("DACERF", dict(ent_coef=0.0)),
     "dacerf-alpha1": ("DACERF", dict(ent_coef="auto_1")),
-    "dacerf-entnoise": ("DACERF", dict(entropy_estimate="noise")),
     "dacerf-qscale": ("DACERF", dict(flow_matching_weights="q_scale")),
-    "dacerf-td3bc": ("DACERF", dict(flow_matching_weights="td3bc")),
-    "dacerf-flowrl": ("DACERF", dict(flow_matching_weights="flowrl")),
-    "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=True))),  # = the defaults (named so in earlier results)
-    "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=False))),  # SB3's MLP critics (0.1.0's)
+    "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic="layer_norm"))),  # = the defaults (named so in earlier results)
+    "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic="mlp"))),  # SB3's MLP critics (0.1.0's)
     # CrossQ's learning rate 1e-3 and Adam betas (0.5, 0.999), with the default critics and their targets
     "dacerf-lr": ("DACERF", dict(learning_rate=1e-3, policy_kwargs=dict(optimizer_kwargs=dict(betas=(0.5, 0.999))))),
     # CrossQ's critics: batch renormalisation, no target networks (same width, learning rate and Adam as the defaults)
-    "dacerf-crossq": ("DACERF", dict(policy_kwargs=dict(critic_layer_norm=False, critic_batch_renorm=True))),
+    "dacerf-crossq": ("DACERF", dict(policy_kwargs=dict(critic="batch_renorm"))),
     # ... with CrossQ's learning rate 1e-3 and Adam betas (0.5, 0.999) for the actor and the critics
     "dacerf-crossq-lr": (
         "DACERF",
         dict(
             learning_rate=1e-3,
-            policy_kwargs=dict(critic_layer_norm=False, critic_batch_renorm=True, optimizer_kwargs=dict(betas=(0.5, 0.999))),
+            policy_kwargs=dict(critic="batch_renorm", optimizer_kwargs=dict(betas=(0.5, 0.999))),
         ),
     ),
     "dacerf-delay1": ("DACERF", dict(policy_delay=1)),
     "dacerf-gradnorm": ("DACERF", dict(langevin_normalize_gradient=True)),
-    "dacerf-steps3": ("DACERF", dict(n_sampling_steps=3)),
+    "dacerf-steps3": ("DACERF", dict(policy_kwargs=dict(n_sampling_steps=3))),
     # fewer, larger Langevin steps with the same total drift and noise (N_l * eta = 0.6, N_l * eta * alpha fixed)
     "dacerf-langevin5": ("DACERF", dict(langevin_steps=5, langevin_step_size=0.12)),
     "dacerf-langevin10": ("DACERF", dict(langevin_steps=10, langevin_step_size=0.06)),
@@ -105,7 +102,8 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # rewards are audited as undiscounted episode totals)
     "sac-gamma998": ("SAC", dict(gamma=0.998)),
     "dacerf-gradnorm-gamma998": ("DACERF", dict(langevin_normalize_gradient=True, gamma=0.998)),
-    # with --demonstration-fraction: the demonstrations' own actions as flow-matching targets (no Langevin step)
+    # with --demonstration-fraction: the demonstrations' own actions as flow-matching targets (no Langevin step), the
+    # DemonstrationReplayBuffer's demonstration_targets="actions"
     "dacerf-gradnorm-demo-actions": ("DACERF", dict(langevin_normalize_gradient=True, demonstration_targets="actions")),
     "td3": ("TD3", {}),
     "tqc": ("TQC", {}),
@@ -303,11 +301,20 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     kwargs = dict(kwargs)
     if job.get("steps_per_gradient") is not None:
         kwargs.update(steps_per_gradient_kwargs(job["steps_per_gradient"], n_envs))
+    # an argument of the DemonstrationReplayBuffer
+    demonstration_targets = kwargs.pop("demonstration_targets", "langevin")
     if job.get("demonstration_fraction") is not None:
         from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 
         kwargs["replay_buffer_class"] = DemonstrationReplayBuffer
-        kwargs["replay_buffer_kwargs"] = dict(demonstration_fraction=job["demonstration_fraction"])
+        kwargs["replay_buffer_kwargs"] = dict(
+            demonstration_fraction=job["demonstration_fraction"], demonstration_targets=demonstration_targets
+        )
+    elif demonstration_targets != "langevin":
+        raise SystemExit(
+            f"variant {job['variant']} fits the demonstrations' own actions: pass --demonstrations N and "
+            "--demonstration-fraction F (a DemonstrationReplayBuffer)"
+        )
     if "action_noise_std" in kwargs:
         dim = env.action_space.shape[0]
         kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))

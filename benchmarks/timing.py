@@ -46,8 +46,8 @@ NET_ARCH = [256, 256]
 # "DACERF (CrossQ critics)" by its critics too (batch renormalisation, no target networks, one joint forward pass).
 CONFIGURATIONS: dict[str, tuple[type[BaseAlgorithm], dict[str, Any]]] = {
     "DACERF": (DACERF, {}),
-    "DACERF (MLP critics)": (DACERF, dict(critic_layer_norm=False)),
-    "DACERF (CrossQ critics)": (DACERF, dict(critic_batch_renorm=True)),
+    "DACERF (MLP critics)": (DACERF, dict(critic="mlp")),
+    "DACERF (CrossQ critics)": (DACERF, dict(critic="batch_renorm")),
     "DACER": (DACER, {}),
     "DACER (ReLU)": (DACER, dict(activation_fn=nn.ReLU)),
     "SAC": (SAC, {}),
@@ -75,7 +75,7 @@ def make_model(name: str, obs_dim: int, action_dim: int, device: str, **kwargs: 
     An untrained model of one configuration on a spaces-only environment.
 
     :param name: a key of :data:`CONFIGURATIONS`
-    :param kwargs: constructor arguments (``buffer_size``, ``compile_langevin``, ...)
+    :param kwargs: constructor arguments (``buffer_size``, ...)
     """
     algorithm, policy_kwargs = CONFIGURATIONS[name]
     env = SpacesOnly(obs_dim, action_dim)

@@ -179,7 +179,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--demonstration-targets",
         choices=["langevin", "actions"],
         help="DACERF with --demonstration-fraction: 'actions' fits the demonstrated actions as they are, 'langevin' "
-        "(the constructor default) moves them by Langevin steps like the model's own (DACERF's demonstration_targets)",
+        "(the default) moves them by Langevin steps like the model's own (the DemonstrationReplayBuffer's "
+        "demonstration_targets)",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip (+ .json, _vecnormalize.pkl)")
@@ -279,7 +280,7 @@ def algorithm_kwargs(args: argparse.Namespace) -> dict:
         kwargs["replay_buffer_class"] = DemonstrationReplayBuffer
         kwargs["replay_buffer_kwargs"] = dict(demonstration_fraction=args.demonstration_fraction)
     if args.demonstration_targets:
-        kwargs["demonstration_targets"] = args.demonstration_targets
+        kwargs["replay_buffer_kwargs"]["demonstration_targets"] = args.demonstration_targets
     if args.steps_per_gradient is not None:
         kwargs.update(steps_per_gradient_kwargs(args.steps_per_gradient, args.n_envs))
     return kwargs

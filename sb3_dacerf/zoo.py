@@ -44,6 +44,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import recursive_getattr
 
 from sb3_dacerf import DACER, DACERF, DSAC
+from sb3_dacerf.common.policies import CRITICS as _POLICY_CRITICS
 
 if TYPE_CHECKING:
     from rl_zoo3.callbacks import ParallelTrainCallback
@@ -66,14 +67,12 @@ NET_ARCH = {
     "verybig": [512, 512, 512],
 }
 
-#: The critics :func:`sample_dacerf_params` draws from, as ``policy_kwargs``: SB3's MLP, LayerNorm after every hidden
-#: layer (the default), or CrossQ's batch renormalisation without target networks (needs sb3-contrib, which RL Zoo
-#: installs). Each sets both switches, so that the draw overrides a YAML entry's own choice of critics.
-CRITICS = {
-    "mlp": {"critic_layer_norm": False, "critic_batch_renorm": False},
-    "layer_norm": {"critic_layer_norm": True, "critic_batch_renorm": False},
-    "batch_renorm": {"critic_layer_norm": False, "critic_batch_renorm": True},
-}
+#: The critics :func:`sample_dacerf_params` draws from (``policy_kwargs`` ``critic``): SB3's MLP, LayerNorm after every
+#: hidden layer (the default), or CrossQ's batch renormalisation without target networks (needs sb3-contrib, which RL
+#: Zoo installs). The draw overrides a YAML entry's own choice of critics.
+CRITICS = _POLICY_CRITICS
+#: The ``policy_kwargs`` of earlier versions that chose the critics, which a drawn ``critic`` replaces
+_CRITIC_FLAGS = ("critic_layer_norm", "critic_batch_renorm")
 
 
 def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -85,13 +84,15 @@ def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[st
     :return: keyword arguments for ``DACERF``
     """
     hyperparams = convert_dacer_params(sampled_params, policy_kwargs)  # the settings both samplers draw
+    if "critic_layer_norm" in hyperparams:  # studies made before batch-renorm critics were sampled
+        hyperparams.setdefault("critics", "layer_norm" if hyperparams.pop("critic_layer_norm") else "mlp")
     if "critics" in hyperparams:
         critics = hyperparams.pop("critics")
         if critics not in CRITICS:
             raise ValueError(f"Unknown critics {critics!r} in the sampled parameters: use one of {sorted(CRITICS)}")
-        hyperparams["policy_kwargs"].update(CRITICS[critics])
-    if "critic_layer_norm" in hyperparams:  # studies made before batch-renorm critics were sampled
-        hyperparams["policy_kwargs"]["critic_layer_norm"] = hyperparams.pop("critic_layer_norm")
+        for flag in _CRITIC_FLAGS:
+            hyperparams["policy_kwargs"].pop(flag, None)
+        hyperparams["policy_kwargs"]["critic"] = critics
     if hyperparams.get("ent_coef") == "off":  # Optuna's categorical values: "auto" (learned α) or "off" (paper)
         hyperparams["ent_coef"] = 0.0
     return hyperparams
@@ -140,7 +141,7 @@ def sample_dacerf_params(
         # The entropy regulator (learned α, or the paper's mechanism without added noise), the actor-loss
         # weighting, the critics (CRITICS) and the normalised Langevin gradient: the options benchmarks/learning.md measures
         "ent_coef": trial.suggest_categorical("ent_coef", ["auto", "off"]),
-        "flow_matching_weights": trial.suggest_categorical("flow_matching_weights", ["gain", "q_scale", "td3bc", "flowrl"]),
+        "flow_matching_weights": trial.suggest_categorical("flow_matching_weights", ["gain", "paper"]),
         "critics": trial.suggest_categorical("critics", list(CRITICS)),
         "langevin_normalize_gradient": trial.suggest_categorical("langevin_normalize_gradient", [False, True]),
         # one-step targets (the default, as in the paper) or n-step returns
@@ -162,6 +163,9 @@ def convert_dacer_params(sampled_params: dict[str, Any], policy_kwargs: dict[str
     hyperparams = sampled_params.copy()
     hyperparams["batch_size"] = 2 ** hyperparams.pop("batch_size_pow")
     hyperparams["policy_kwargs"] = {**(policy_kwargs or {}), "net_arch": NET_ARCH[hyperparams.pop("net_arch")]}
+    for name in ("n_diffusion_steps", "n_sampling_steps"):  # policy arguments
+        if name in hyperparams:
+            hyperparams["policy_kwargs"][name] = hyperparams.pop(name)
     return hyperparams
 
 

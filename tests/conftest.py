@@ -26,7 +26,7 @@ def fast_settings(model_class: type) -> dict[str, Any]:
     """
     settings: dict[str, Any] = dict(learning_starts=50, batch_size=32, buffer_size=2_000, policy_kwargs=dict(net_arch=[32, 32]))
     if model_class is DACER:
-        settings["n_diffusion_steps"] = 5
+        settings["policy_kwargs"]["n_diffusion_steps"] = 5
     return settings
 
 

@@ -52,9 +52,16 @@ def observations(model, n: int = 16) -> np.ndarray:
 
 
 def test_constructor_arguments_are_explicit(model_class):
-    parameters = inspect.signature(model_class).parameters
+    parameters = dict(inspect.signature(model_class).parameters)
+    # The only catch-all takes the arguments of earlier versions, to name their replacement: a misspelt one is refused
+    if "removed_arguments" in parameters:
+        assert parameters.pop("removed_arguments").kind == inspect.Parameter.VAR_KEYWORD
     kinds = {parameter.kind for parameter in parameters.values()}
     assert inspect.Parameter.VAR_KEYWORD not in kinds and inspect.Parameter.VAR_POSITIONAL not in kinds
+    with pytest.raises(
+        TypeError, match=f"{model_class.__name__}.__init__\\(\\) got an unexpected keyword argument 'learning_rte'"
+    ):
+        model_class("MlpPolicy", "Pendulum-v1", learning_rte=1e-3)
     sac = inspect.signature(SAC).parameters
     assert set(sac) - SAC_ONLY <= set(parameters)
     for name in SB3_ARGUMENTS:
@@ -68,7 +75,9 @@ def test_constructor_arguments_are_explicit(model_class):
 def test_hyperparameter_rules_belong_to_their_algorithm(model_class):
     rules = model_class.hyperparameter_rules
     assert set(TwinCriticAlgorithm.hyperparameter_rules) <= set(rules)
-    assert set(rules) <= set(inspect.signature(model_class).parameters)
+    # ... named as the algorithm's arguments, or as its policy's (n_sampling_steps, n_diffusion_steps)
+    policy_parameters = inspect.signature(model_class.policy_aliases["MlpPolicy"]).parameters
+    assert set(rules) <= set(inspect.signature(model_class).parameters) | set(policy_parameters)
     # Each algorithm checks its own hyper-parameters only: policy_delay is the one they both have
     shared = set(TwinCriticAlgorithm.hyperparameter_rules)
     assert (set(DACER.hyperparameter_rules) - shared) & (set(DACERF.hyperparameter_rules) - shared) == {"policy_delay"}

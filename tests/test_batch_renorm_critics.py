@@ -1,4 +1,4 @@
-"""CrossQ's critics (``policy_kwargs=dict(critic_batch_renorm=True)``): batch renormalisation, no target networks."""
+"""CrossQ's critics (``policy_kwargs=dict(critic="batch_renorm")``): batch renormalisation, no target networks."""
 
 import pytest
 import torch as th
@@ -19,9 +19,7 @@ def model_class(request) -> type:
 
 
 def test_critics_learn_without_targets_and_update_statistics_once_per_critic_update(model_class, fast):
-    fast["policy_kwargs"]["critic_batch_renorm"] = True
-    if model_class is DACER:
-        fast["policy_kwargs"]["critic_layer_norm"] = False
+    fast["policy_kwargs"]["critic"] = "batch_renorm"
     model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
     assert isinstance(model.critic, BatchRenormCritic)
     # one layer before each of the three linear layers, holding the statistics of both critics
@@ -43,10 +41,8 @@ def test_critics_learn_without_targets_and_update_statistics_once_per_critic_upd
 
 @pytest.mark.parametrize("model_class", [DACERF])  # the fast settings follow model_class: DACERF's
 def test_saved_and_loaded_with_their_running_statistics(tmp_path, fast):
-    fast["policy_kwargs"]["critic_batch_renorm"] = True
+    fast["policy_kwargs"]["critic"] = "batch_renorm"
     model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, **fast)
-    # CrossQ's critics replace the default LayerNorm critics
-    assert model.policy_kwargs["critic_layer_norm"] is False
     model.learn(100)
     model.save(tmp_path / "crossq")
     loaded = DACERF.load(tmp_path / "crossq")
@@ -62,6 +58,14 @@ def test_saved_and_loaded_with_their_running_statistics(tmp_path, fast):
             assert th.allclose(q_value, loaded_q_value)
 
 
-def test_layer_norm_and_batch_renorm_together_are_refused():
-    with pytest.raises(ValueError, match="pass critic_layer_norm=False with critic_batch_renorm=True"):
+def test_the_critic_booleans_of_earlier_versions_convert_with_a_warning_and_contradictions_are_refused():
+    with pytest.warns(FutureWarning, match=r"critic_batch_renorm=True is deprecated.*dict\(critic='batch_renorm'\)"):
+        model = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_batch_renorm=True))
+    assert isinstance(model.critic, BatchRenormCritic) and model.policy_kwargs["critic"] == "batch_renorm"
+    assert "critic_batch_renorm" not in model.policy_kwargs
+    with pytest.warns(FutureWarning, match=r"dict\(critic='mlp'\)"):
+        assert DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=False)).policy_kwargs["critic"] == "mlp"
+    with pytest.raises(ValueError, match=r"two kinds of critics at once.*critic='batch_renorm'"):
         DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=True, critic_batch_renorm=True))
+    with pytest.raises(ValueError, match="critic='layer_norm' and the deprecated critic_batch_renorm=True"):
+        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic="layer_norm", critic_batch_renorm=True))

@@ -89,10 +89,9 @@ def test_dacerf_fits_the_demonstrated_actions_with_demonstration_targets_actions
 
     from sb3_dacerf import DACERF
 
-    kwargs = dict(replay_buffer_class=DemonstrationReplayBuffer, replay_buffer_kwargs=dict(demonstration_fraction=0.25))
-    model = DACERF(
-        "MlpPolicy", "Pendulum-v1", seed=0, learning_starts=20, batch_size=32, demonstration_targets="actions", **kwargs
-    )
+    buffer_kwargs = dict(demonstration_fraction=0.25, demonstration_targets="actions")
+    kwargs = dict(replay_buffer_class=DemonstrationReplayBuffer, replay_buffer_kwargs=buffer_kwargs)
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, learning_starts=20, batch_size=32, **kwargs)
     with model.replay_buffer.recording_demonstrations():
         model.learn(40)  # transitions of the untrained policy, standing in for demonstrations
     model.learn(40)
@@ -104,9 +103,24 @@ def test_dacerf_fits_the_demonstrated_actions_with_demonstration_targets_actions
     th.testing.assert_close(terms["targets"][:8], batch.actions[:8])
     assert not th.allclose(terms["targets"][8:], batch.actions[8:])  # the agent's own: Langevin targets
     assert th.allclose(terms["lambda_f"][:8], terms["lambda_f"][:8].mean().expand(8, 1))
-    model.demonstration_targets = "langevin"  # the paper's update: every replay action moved by Langevin dynamics
+    buffer.demonstration_targets = "langevin"  # the paper's update: every replay action moved by Langevin dynamics
+    batch = buffer.sample(32, env=None)
     assert not th.allclose(model.actor_loss_terms(batch)["targets"][:8], batch.actions[:8])
     with pytest.raises(ValueError, match="demonstration_targets='copy': it must be 'langevin' or 'actions'"):
-        DACERF("MlpPolicy", "Pendulum-v1", demonstration_targets="copy")
-    with pytest.raises(ValueError, match="but the replay buffer is a ReplayBuffer: pass replay_buffer_class="):
+        DACERF(
+            "MlpPolicy",
+            "Pendulum-v1",
+            replay_buffer_class=DemonstrationReplayBuffer,
+            replay_buffer_kwargs=dict(demonstration_targets="copy"),
+        )
+
+
+def test_demonstration_targets_given_to_dacerf_move_to_the_buffer_with_a_warning():
+    from sb3_dacerf import DACERF
+
+    with pytest.warns(FutureWarning, match=r"replay_buffer_kwargs=dict\(demonstration_targets='actions'\)"):
+        model = DACERF("MlpPolicy", "Pendulum-v1", replay_buffer_class=DemonstrationReplayBuffer, demonstration_targets="actions")
+    assert model.replay_buffer.demonstration_targets == "actions"
+    assert model.replay_buffer_kwargs == dict(demonstration_targets="actions")
+    with pytest.raises(ValueError, match="pass replay_buffer_class=DemonstrationReplayBuffer"):
         DACERF("MlpPolicy", "Pendulum-v1", demonstration_targets="actions")

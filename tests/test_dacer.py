@@ -27,10 +27,10 @@ def test_logs_the_paper_quantities_on_box_observations(tmp_path, fast):
     model.learn(200, log_interval=1)
     with open(tmp_path / "progress.csv") as file:
         last = list(csv.DictReader(file))[-1]
-    logged = {key: float(last[f"train/{key}"]) for key in ("critic_loss", "actor_loss", "alpha", "entropy", "n_updates")}
+    logged = {key: float(last[f"train/{key}"]) for key in ("critic_loss", "actor_loss", "ent_coef", "entropy", "n_updates")}
     assert all(math.isfinite(value) for value in logged.values()), logged
-    assert logged["critic_loss"] >= 0 and logged["alpha"] > 0, logged
-    assert logged["alpha"] != pytest.approx(initial_alpha)  # updated once (alpha_update_interval=100) from the entropy
+    assert logged["critic_loss"] >= 0 and logged["ent_coef"] > 0, logged
+    assert logged["ent_coef"] != pytest.approx(initial_alpha)  # updated once (alpha_update_interval=100) from the entropy
     assert logged["entropy"] == pytest.approx(model.entropy)
     assert logged["n_updates"] == model._n_updates == 150
 
@@ -54,6 +54,8 @@ def test_official_defaults():
     assert model.actor.optimizer.param_groups[0]["lr"] == model.critic.optimizer.param_groups[0]["lr"] == 1e-4
     assert (model.tau, model.policy_delay, model.gamma) == (0.005, 2, 0.99)
     assert (model.alpha_learning_rate, model.alpha_update_interval, model.entropy_samples) == (3e-2, 10_000, 200)
+    # α learned from the official log α = log 3, with its own learning rate: ent_coef="auto", as DACERF's and DSAC's
+    assert model.ent_coef == "auto" and model.ent_coef_optimizer.param_groups[0]["lr"] == 3e-2
     assert model.target_entropy == pytest.approx(-0.9)
     assert model.actor.log_alpha.item() == pytest.approx(OFFICIAL_LOG_ALPHA)
     assert (model.actor.n_diffusion_steps, model.actor.beta_schedule, model.actor.exploration_noise_scale) == (20, "vp", 0.15)
@@ -113,7 +115,26 @@ def test_alpha_moves_towards_the_target_entropy_once_per_interval(target_entropy
     model.learn(59)  # updates 1..9: the entropy regulator runs at updates 1, 5 and 9
     # Adam's steps have size lr while the sign of the gradient H - H_target does not change
     assert model.actor.log_alpha.item() == pytest.approx(OFFICIAL_LOG_ALPHA + direction * 3 * 3e-2, abs=1e-4)
-    assert model.alpha_optimizer.state_dict()["state"][0]["step"] == 3
+    assert model.ent_coef_optimizer.state_dict()["state"][0]["step"] == 3
+
+
+def test_ent_coef_fixes_or_starts_alpha_and_initial_log_alpha_converts_with_a_warning(tmp_path, fast):
+    fixed = DACER("MlpPolicy", "Pendulum-v1", seed=0, ent_coef=0.5, alpha_update_interval=1, entropy_samples=8, **fast)
+    fixed.learn(70)
+    assert fixed.ent_coef_optimizer is None and fixed.actor.log_alpha.exp().item() == pytest.approx(0.5)
+    assert fixed.logger.name_to_value["train/ent_coef"] == pytest.approx(0.5)
+    assert DACER("MlpPolicy", "Pendulum-v1", ent_coef=0).actor.exploration_std.item() == 0.0
+    assert DACER("MlpPolicy", "Pendulum-v1", ent_coef="auto_0.5").actor.log_alpha.exp().item() == pytest.approx(0.5)
+    with pytest.warns(FutureWarning, match=r"initial_log_alpha=0.0\) is deprecated.*use ent_coef='auto_1'"):
+        model = DACER("MlpPolicy", "Pendulum-v1", initial_log_alpha=0.0)
+    assert model.ent_coef == "auto_1.0" and model.actor.log_alpha.item() == 0.0 and model.ent_coef_optimizer is not None
+    with pytest.raises(ValueError, match=r"initial_log_alpha=0\.0 and ent_coef=0\.5 both set the temperature"):
+        DACER("MlpPolicy", "Pendulum-v1", initial_log_alpha=0.0, ent_coef=0.5)
+    for bad in ("automatic", "auto_-1", -0.1, True):
+        with pytest.raises(ValueError, match=f"Invalid ent_coef={bad!r}"):
+            DACER("MlpPolicy", "Pendulum-v1", ent_coef=bad)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'alpha'"):
+        DACER("MlpPolicy", "Pendulum-v1", alpha=0.2)
 
 
 def test_gaussian_mixture_entropy_matches_closed_forms():
@@ -136,8 +157,8 @@ def test_save_load_restores_the_entropy_regulator(tmp_path, fast):
     loaded = DACER.load(tmp_path / "dacer")
     assert loaded.actor.n_diffusion_steps == 5 and loaded.policy_delay == 2
     assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item() != pytest.approx(OFFICIAL_LOG_ALPHA)
-    assert loaded.alpha_optimizer.state_dict()["state"][0]["step"] == model.alpha_optimizer.state_dict()["state"][0]["step"]
-    assert loaded.alpha_optimizer.param_groups[0]["params"][0] is loaded.actor.log_alpha
+    assert loaded.ent_coef_optimizer.state_dict()["state"][0]["step"] == model.ent_coef_optimizer.state_dict()["state"][0]["step"]
+    assert loaded.ent_coef_optimizer.param_groups[0]["params"][0] is loaded.actor.log_alpha
     assert loaded.entropy == model.entropy
 
 
@@ -153,7 +174,9 @@ def test_beta_schedules_match_their_definitions():
 
 @pytest.mark.parametrize("schedule", ["vp", "cosine", "linear"])
 def test_every_beta_schedule_is_selectable_and_trains(schedule, fast):
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "policy_kwargs": dict(net_arch=[16], beta_schedule=schedule)})
+    model = DACER(
+        "MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "policy_kwargs": {**fast["policy_kwargs"], "beta_schedule": schedule}}
+    )
     assert model.actor.beta_schedule == schedule
     # The reverse process uses the chosen schedule: at t = T, x̂_0 = x_T / sqrt(ᾱ_T) - ...
     alpha_bar = np.prod(1 - diffusion_betas(schedule, 5))
@@ -169,16 +192,19 @@ def test_unknown_beta_schedule_is_refused():
 
 @pytest.mark.parametrize(
     "name, value",
-    [("n_diffusion_steps", 0), ("entropy_samples", 2), ("alpha_update_interval", 0), ("alpha_learning_rate", 0.0)],
+    [("entropy_samples", 2), ("alpha_update_interval", 0), ("alpha_learning_rate", 0.0)],
 )
 def test_invalid_hyperparameters(name, value):
     with pytest.raises(ValueError, match=f"Invalid {name}="):
         DACER("MlpPolicy", "Pendulum-v1", **{name: value})
+    with pytest.raises(ValueError, match="Invalid n_diffusion_steps=0"):
+        DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(n_diffusion_steps=0))
 
 
 @pytest.mark.parametrize("n_diffusion_steps", [1, 5])
 def test_noise_holds_the_start_and_the_posterior_noise_of_each_reverse_step(fast, n_diffusion_steps):
-    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "n_diffusion_steps": n_diffusion_steps})
+    fast["policy_kwargs"]["n_diffusion_steps"] = n_diffusion_steps
+    model = DACER("MlpPolicy", "Pendulum-v1", seed=0, **fast)
     actor = model.actor
     features = th.randn((8, actor.features_dim))
     th.manual_seed(1)

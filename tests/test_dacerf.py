@@ -59,10 +59,10 @@ def test_defaults_and_paper_preset():
     assert model.policy.critic.n_critics == 2
     assert model.policy.actor is model.actor and model.policy.critic_target is model.critic_target
     # LayerNorm critics by default, SB3's MLP critics in the paper preset or on request
-    assert model.policy_kwargs["critic_layer_norm"] is True
+    assert model.policy_kwargs["critic"] == "layer_norm"
     assert isinstance(model.critic, LayerNormCritic) and isinstance(model.critic_target, LayerNormCritic)
     assert type(paper.critic) is EnsembleCritic
-    mlp = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=False))
+    mlp = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic="mlp"))
     assert type(mlp.critic) is EnsembleCritic and type(mlp.critic_target) is EnsembleCritic
 
 
@@ -81,12 +81,12 @@ def test_n_step_returns_are_saved_and_loaded_without_sb3_warning_they_are_ignore
 
 
 def test_a_model_saved_without_the_critic_setting_loads_with_mlp_critics(tmp_path):
-    # files written before LayerNorm critics became the default hold MLP critics and no critic_layer_norm key
-    model = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=False), seed=0)
-    del model.policy_kwargs["critic_layer_norm"]
+    # files written before LayerNorm critics became the default hold MLP critics and no critic key
+    model = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic="mlp"), seed=0)
+    del model.policy_kwargs["critic"]
     model.save(tmp_path / "old")
     loaded = DACERF.load(tmp_path / "old")
-    assert type(loaded.critic) is EnsembleCritic and "critic_layer_norm" not in loaded.policy_kwargs
+    assert type(loaded.critic) is EnsembleCritic and "critic" not in loaded.policy_kwargs
     for name, value in model.policy.state_dict().items():
         assert th.equal(value, loaded.policy.state_dict()[name]), name
     # and a model saved now keeps its LayerNorm critics
@@ -150,7 +150,8 @@ def test_shared_features_extractor_and_separate_net_arch():
 
 
 def test_save_load_restores_the_settings_and_the_optimizer(tmp_path, fast):
-    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, n_sampling_steps=2, **fast)
+    fast["policy_kwargs"]["n_sampling_steps"] = 2
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, **fast)
     model.learn(120)
     model.save(tmp_path / "dacerf")
     loaded = DACERF.load(tmp_path / "dacerf")
@@ -244,7 +245,6 @@ def test_unbounded_actions_are_refused():
         ("langevin_temperature", float("inf")),
         ("langevin_step_size", float("nan")),
         ("flow_matching_coef", float("inf")),
-        ("n_sampling_steps", 0),
         ("flow_matching_coef", -1.0),
         ("n_steps", 0),
         ("n_steps", 2.5),
@@ -255,15 +255,11 @@ def test_invalid_hyperparameters(name, value):
         DACERF("MlpPolicy", "Pendulum-v1", **{name: value})
 
 
-@pytest.mark.slow  # torch.compile
-def test_compiled_langevin_loop_trains_and_is_saved(tmp_path, fast):
-    """compile_langevin=True: the loop goes through torch.compile (one graph, ~30 s here) and the flag is saved."""
-    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, compile_langevin=True, **fast)
-    model.learn(80)
-    assert model.logger.name_to_value["train/langevin_gain"] > 0
-    assert np.isfinite(model.logger.name_to_value["train/actor_loss"])
-    model.save(tmp_path / "compiled")
-    assert DACERF.load(tmp_path / "compiled").compile_langevin is True
+def test_invalid_policy_arguments():
+    with pytest.raises(ValueError, match="Invalid n_sampling_steps=0"):
+        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(n_sampling_steps=0))
+    with pytest.raises(ValueError, match="Invalid critic='layernorm': it must be one of 'mlp', 'layer_norm', 'batch_renorm'"):
+        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic="layernorm"))
 
 
 def test_normalized_langevin_gradient_trains_and_is_saved(tmp_path, fast):

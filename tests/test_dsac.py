@@ -354,7 +354,7 @@ def test_gops_loss_and_layer_norm_critics_train(fast):
     model = DSAC("MlpPolicy", "Pendulum-v1", seed=0, critic_loss="gops", **fast)
     model.learn(100)
     assert math.isfinite(model.logger.name_to_value["train/critic_loss"])
-    model = DSAC("MlpPolicy", "Pendulum-v1", seed=0, policy_kwargs=dict(net_arch=[32, 32], critic_layer_norm=True))
+    model = DSAC("MlpPolicy", "Pendulum-v1", seed=0, policy_kwargs=dict(net_arch=[32, 32], critic="layer_norm"))
     assert any(isinstance(m, th.nn.LayerNorm) for m in model.critic.q_networks[0])
 
 
@@ -436,7 +436,7 @@ def test_save_load_keeps_the_running_std_alpha_and_optimizers(tmp_path, fast):
         (dict(tau_b=1.5), "Invalid tau_b=1.5"),
         (dict(alpha_learning_rate=0), "Invalid alpha_learning_rate=0"),
         (dict(policy_kwargs=dict(n_critics=3)), "exactly two critics.*n_critics=3"),
-        (dict(policy_kwargs=dict(critic_batch_renorm=True)), "critic_batch_renorm=True.*critic_layer_norm=True"),
+        (dict(policy_kwargs=dict(critic="batch_renorm")), "critic='batch_renorm'.*critic='layer_norm'"),
         (dict(policy_kwargs=dict(log_std_min=1.0, log_std_max=0.5)), "log_std_min < log_std_max"),
         (dict(policy_kwargs=dict(exploration_noise_scale=0.1)), "unexpected keyword|exploration_noise_scale"),
     ],

@@ -31,10 +31,10 @@ from sb3_dacerf.common.utils import frozen
 DATA = os.path.join(os.path.dirname(__file__), "data")
 EXAMPLE_MODELS = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "models")
 CRITICS = {
-    "mlp": dict(critic_layer_norm=False),
-    "layer_norm": dict(critic_layer_norm=True),
-    "batch_renorm": dict(critic_layer_norm=False, critic_batch_renorm=True),
-    "layer_norm_3_critics": dict(critic_layer_norm=True, n_critics=3),
+    "mlp": dict(critic="mlp"),
+    "layer_norm": dict(critic="layer_norm"),
+    "batch_renorm": dict(critic="batch_renorm"),
+    "layer_norm_3_critics": dict(critic="layer_norm", n_critics=3),
 }
 
 
@@ -76,7 +76,7 @@ def separate_q_values(critic: EnsembleCritic, networks: list[nn.Sequential], obs
 
 def trained_model(critics: str, seed: int = 0) -> DACERF:
     kwargs = dict(CRITICS[critics])
-    if kwargs.get("critic_batch_renorm"):
+    if kwargs.get("critic") == "batch_renorm":
         pytest.importorskip("sb3_contrib")
     model = DACERF(
         "MlpPolicy",
@@ -116,7 +116,7 @@ def test_critics_equal_separate_networks_with_the_same_weights(critics):
     th.manual_seed(11)
     with th.no_grad():
         next_actions = model.actor(batch.next_observations)
-    if CRITICS[critics].get("critic_batch_renorm"):  # one joint pass in training mode, no target networks
+    if CRITICS[critics].get("critic") == "batch_renorm":  # one joint pass in training mode, no target networks
         for network in networks:
             network.train()
         joint = separate_q_values(
@@ -144,7 +144,7 @@ def test_critics_equal_separate_networks_with_the_same_weights(critics):
     for member, network in enumerate(networks):
         for index in linears:
             assert th.allclose(model.critic.ensemble[index].weight.grad[member], network[index].weight.grad.t(), atol=1e-5)
-    if CRITICS[critics].get("critic_batch_renorm"):  # and the pass moved the same running statistics
+    if CRITICS[critics].get("critic") == "batch_renorm":  # and the pass moved the same running statistics
         for module, layer in zip(model.critic.ensemble, networks[0], strict=True):
             if isinstance(module, EnsembleBatchRenorm):
                 assert th.allclose(module.ra_mean[0], layer.ra_mean, atol=1e-6) and module.steps == layer.steps
@@ -299,8 +299,8 @@ def test_get_and_set_parameters_follow_sb3s_save_load_contract(model_class, tmp_
     set_parameters refuses unknown objects and, with exact_match, missing ones; with exact_match=False it sets the
     tensors it is given and only those; save and load give the same parameters and actions."""
     env = DummyVecEnv([lambda: IdentityEnvBox(-10, 10)])
-    kwargs = dict(n_diffusion_steps=3) if model_class is DACER else {}
-    model = model_class("MlpPolicy", env, learning_rate=1e-3, policy_kwargs=dict(net_arch=[16]), seed=0, **kwargs)
+    policy_kwargs = dict(net_arch=[16], **(dict(n_diffusion_steps=3) if model_class is DACER else {}))
+    model = model_class("MlpPolicy", env, learning_rate=1e-3, policy_kwargs=policy_kwargs, seed=0)
     model.learn(total_timesteps=128)
     observations = np.concatenate([env.step([env.action_space.sample()])[0] for _ in range(10)], axis=0)
     original = deepcopy(model.get_parameters())

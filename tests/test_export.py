@@ -22,7 +22,7 @@ ort = pytest.importorskip("onnxruntime")
 TINY = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32]), seed=0)
 # DACER with the linear noise schedule: an untrained model's deterministic actions are then inside the bounds (with
 # the cosine schedule most are clipped, which would hide differences); the cosine schedule is tested on its own
-TINY_DACER = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32], beta_schedule="linear"), seed=0, n_diffusion_steps=5)
+TINY_DACER = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32], beta_schedule="linear", n_diffusion_steps=5), seed=0)
 
 
 class DiscreteObsEnv(gym.Env):
@@ -46,7 +46,8 @@ class DiscreteObsEnv(gym.Env):
 
 
 def make_model(policy: str, n_sampling_steps: int = 1, algorithm: type = DACERF):
-    settings = {**TINY, "n_sampling_steps": n_sampling_steps} if algorithm is DACERF else dict(TINY_DACER)
+    tiny_dacerf = {**TINY, "policy_kwargs": {**TINY["policy_kwargs"], "n_sampling_steps": n_sampling_steps}}
+    settings = tiny_dacerf if algorithm is DACERF else dict(TINY_DACER)
     if algorithm is DSAC:
         settings = dict(TINY)
     if policy == "MlpPolicy":

@@ -112,18 +112,25 @@ def test_learn_stops_at_a_non_finite_observation_before_acting_on_it(nan_step, m
     assert all(np.isfinite(action).all() for action in env.actions)
 
 
-def test_n_sampling_steps_in_policy_kwargs_is_honoured_and_a_conflict_refused():
+def test_n_sampling_steps_is_a_policy_argument_and_the_algorithm_argument_converts_with_a_warning():
     assert DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(n_sampling_steps=8)).actor.n_sampling_steps == 8
-    assert DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=4).actor.n_sampling_steps == 4
-    both = DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=8, policy_kwargs=dict(n_sampling_steps=8))
+    assert DACERF("MlpPolicy", "Pendulum-v1").policy_kwargs["n_sampling_steps"] == 1
+    with pytest.warns(
+        FutureWarning, match=r"DACERF\(n_sampling_steps=...\) is deprecated.*policy_kwargs=dict\(n_sampling_steps=4\)"
+    ):
+        assert DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=4).actor.n_sampling_steps == 4
+    with pytest.warns(FutureWarning):
+        both = DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=8, policy_kwargs=dict(n_sampling_steps=8))
     assert both.actor.n_sampling_steps == 8
     with pytest.raises(ValueError, match=r"n_sampling_steps=1 and policy_kwargs=dict\(n_sampling_steps=8\) disagree"):
         DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=1, policy_kwargs=dict(n_sampling_steps=8))
 
 
-def test_n_diffusion_steps_in_policy_kwargs_is_honoured_and_a_conflict_refused():
+def test_n_diffusion_steps_is_a_policy_argument_and_the_algorithm_argument_converts_with_a_warning():
     assert DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(n_diffusion_steps=5)).actor.n_diffusion_steps == 5
     assert DACER("MlpPolicy", "Pendulum-v1").actor.n_diffusion_steps == 20
+    with pytest.warns(FutureWarning, match=r"policy_kwargs=dict\(n_diffusion_steps=3\)"):
+        assert DACER("MlpPolicy", "Pendulum-v1", n_diffusion_steps=3).actor.n_diffusion_steps == 3
     with pytest.raises(ValueError, match=r"n_diffusion_steps=20 and policy_kwargs=dict\(n_diffusion_steps=5\) disagree"):
         DACER("MlpPolicy", "Pendulum-v1", n_diffusion_steps=20, policy_kwargs=dict(n_diffusion_steps=5))
 
@@ -153,7 +160,7 @@ def test_unsupported_action_space_is_an_assertion_error_like_sb3(model_class, fa
 def test_load_names_the_algorithm_a_file_holds(tmp_path):
     SAC("MlpPolicy", "Pendulum-v1", buffer_size=1, policy_kwargs=dict(net_arch=[8])).save(tmp_path / "sac")
     DACERF("MlpPolicy", "Pendulum-v1", buffer_size=1, policy_kwargs=dict(net_arch=[8])).save(tmp_path / "dacerf")
-    DACER("MlpPolicy", "Pendulum-v1", buffer_size=1, n_diffusion_steps=2, policy_kwargs=dict(net_arch=[8])).save(
+    DACER("MlpPolicy", "Pendulum-v1", buffer_size=1, policy_kwargs=dict(net_arch=[8], n_diffusion_steps=2)).save(
         tmp_path / "dacer"
     )
     with pytest.raises(ValueError, match=r"sac(\.zip)? holds a SAC model .*not a DACERF model: load it with SAC\.load"):

@@ -47,8 +47,8 @@ def mean_action_error(model) -> float:
 # Steps and bounds: with these settings (seeds 0-2, one torch thread) DACERF ends at 0.06-0.11 after 1,200 steps and
 # DACER at 0.13-0.16 after 2,000 (its own default learning rate, 1e-4, is too slow for so short a run)
 SETTINGS = {
-    DACERF: dict(steps=1_200, bound=0.2, kwargs={}),
-    DACER: dict(steps=2_000, bound=0.25, kwargs=dict(n_diffusion_steps=5, learning_rate=1e-3)),
+    DACERF: dict(steps=1_200, bound=0.2, kwargs={}, policy_kwargs={}),
+    DACER: dict(steps=2_000, bound=0.25, kwargs=dict(learning_rate=1e-3), policy_kwargs=dict(n_diffusion_steps=5)),
 }
 BOTH = pytest.mark.parametrize("model_class", [DACERF, DACER], ids=["DACERF", "DACER"])
 
@@ -61,7 +61,7 @@ def train_on_the_bandit(model_class: type, freeze_actor: bool = False) -> float:
         ContextualBandit(),
         learning_starts=200,
         batch_size=64,
-        policy_kwargs=dict(net_arch=[64, 64]),
+        policy_kwargs=dict(net_arch=[64, 64], **settings["policy_kwargs"]),
         seed=0,
         **settings["kwargs"],
     )

@@ -68,7 +68,7 @@ TINY_DACERF = [
     "policy_kwargs:dict(net_arch=[32, 32], optimizer_class='RAD')",
 ]
 # A DACER small enough for a few hundred steps in a test
-TINY_DACER = ["learning_starts:50", "batch_size:32", "n_diffusion_steps:5", "policy_kwargs:dict(net_arch=[32, 32])"]
+TINY_DACER = ["learning_starts:50", "batch_size:32", "policy_kwargs:dict(net_arch=[32, 32], n_diffusion_steps=5)"]
 # A DSAC small enough for a few hundred steps in a test
 TINY_DSAC = ["learning_starts:50", "batch_size:32", "policy_kwargs:dict(net_arch=[32, 32])"]
 
@@ -200,7 +200,11 @@ def test_sampler_builds_dacer():
         hyperparams = sample_dacer_params(trial, 1, 1, {}, policy_kwargs={"activation_fn": th.nn.ReLU})
         assert convert_dacer_params(trial.params, {"activation_fn": th.nn.ReLU}) == hyperparams
         model = DACER("MlpPolicy", "Pendulum-v1", buffer_size=1, **hyperparams)
-        assert model.actor.n_diffusion_steps == hyperparams["n_diffusion_steps"]
+        assert (
+            model.actor.n_diffusion_steps
+            == hyperparams["policy_kwargs"]["n_diffusion_steps"]
+            == trial.params["n_diffusion_steps"]
+        )
         assert model.actor.activation_fn is th.nn.ReLU  # the YAML entry's policy_kwargs are kept
         study.tell(trial, 0.0)
 
@@ -208,7 +212,7 @@ def test_sampler_builds_dacer():
 def test_sampler_builds_dacerf():
     study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
     seen = set()
-    for _ in range(8):
+    for _ in range(12):
         trial = study.ask()
         hyperparams = sample_dacerf_params(trial, 1, 1, {}, policy_kwargs={"optimizer_class": "RAD"})
         assert hyperparams["policy_kwargs"]["optimizer_class"] == "RAD"
@@ -216,7 +220,10 @@ def test_sampler_builds_dacerf():
         assert convert_dacerf_params(trial.params, {"optimizer_class": "RAD"}) == hyperparams
         model = DACERF("MlpPolicy", "Pendulum-v1", **hyperparams)
         critics = trial.params["critics"]
-        assert hyperparams["policy_kwargs"]["critic_layer_norm"] == (critics == "layer_norm")
+        assert hyperparams["policy_kwargs"]["critic"] == critics
+        assert (
+            model.actor.n_sampling_steps == hyperparams["policy_kwargs"]["n_sampling_steps"] == trial.params["n_sampling_steps"]
+        )
         assert any(isinstance(m, EnsembleLayerNorm) for m in model.critic.modules()) == (critics == "layer_norm")
         assert isinstance(model.critic, BatchRenormCritic) == (critics == "batch_renorm")
         assert model.ent_coef == hyperparams["ent_coef"] and hyperparams["ent_coef"] in ("auto", 0.0)
@@ -235,14 +242,13 @@ def test_sampler_builds_dacerf():
 def test_convert_dacerf_params_critics_override_yaml_read_earlier_studies_refuse_unknown():
     drawn = {"batch_size_pow": 8, "net_arch": "small"}
     # studies made before the batch-renorm critics were sampled drew critic_layer_norm itself
-    assert convert_dacerf_params({**drawn, "critic_layer_norm": False})["policy_kwargs"]["critic_layer_norm"] is False
-    # the draw overrides the critics a YAML entry chose
-    yaml_kwargs = {"critic_batch_renorm": True}
-    assert convert_dacerf_params({**drawn, "critics": "layer_norm"}, yaml_kwargs)["policy_kwargs"] == {
-        "net_arch": [64, 64],
-        "critic_layer_norm": True,
-        "critic_batch_renorm": False,
-    }
+    assert convert_dacerf_params({**drawn, "critic_layer_norm": False})["policy_kwargs"]["critic"] == "mlp"
+    # the draw overrides the critics a YAML entry chose, in this version's words or in earlier ones'
+    for yaml_kwargs in ({"critic": "batch_renorm"}, {"critic_batch_renorm": True}):
+        assert convert_dacerf_params({**drawn, "critics": "layer_norm"}, yaml_kwargs)["policy_kwargs"] == {
+            "net_arch": [64, 64],
+            "critic": "layer_norm",
+        }
     with pytest.raises(ValueError, match=r"Unknown critics 'crossq'.*'batch_renorm', 'layer_norm', 'mlp'"):
         convert_dacerf_params({**drawn, "critics": "crossq"})
 

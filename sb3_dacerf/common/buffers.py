@@ -34,9 +34,31 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 
 class DemonstrationSamples(ReplayBufferSamples):
-    """A batch of :class:`DemonstrationReplayBuffer`: its first ``n_demonstrations`` transitions are demonstrations."""
+    """
+    A batch of :class:`DemonstrationReplayBuffer`: its first ``n_demonstrations`` transitions are demonstrations,
+    whose flow-matching targets DACERF takes from :meth:`imitation_targets`.
+    """
 
     n_demonstrations: int = 0
+    #: The buffer's ``demonstration_targets``
+    demonstration_targets: str = "langevin"
+
+    def imitation_targets(self, targets: th.Tensor, weights: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        The flow-matching targets DACERF fits on this batch, and their weights (see
+        :meth:`sb3_dacerf.dacerf.dacerf.DACERF.imitation_targets`).
+
+        :param targets: The Langevin targets ``a*`` of every transition ``(batch, action_dim)``
+        :param weights: Their weights ``λ_f`` ``(batch, 1)``
+        :return: ``targets`` and ``weights`` themselves with ``demonstration_targets="langevin"``; with ``"actions"``,
+            the leading demonstrations' own actions in place of their ``a*``, each at the batch's mean weight
+        """
+        n_demonstrations = self.n_demonstrations
+        if self.demonstration_targets == "langevin" or n_demonstrations == 0:
+            return targets, weights
+        targets = th.cat((self.actions[:n_demonstrations], targets[n_demonstrations:]))
+        weights = th.cat((weights.mean().expand(n_demonstrations, 1), weights[n_demonstrations:]))
+        return targets, weights
 
 
 class DemonstrationReplayBuffer(ReplayBuffer):
@@ -56,6 +78,9 @@ class DemonstrationReplayBuffer(ReplayBuffer):
     :param handle_timeout_termination: as in :class:`~stable_baselines3.common.buffers.ReplayBuffer`
     :param demonstration_fraction: share of each batch drawn from the demonstrations, in ``[0, 1]``
     :param demonstration_size: capacity of the demonstrations' part, in transitions
+    :param demonstration_targets: what DACERF's flow-matching (imitation) term fits for the demonstrations of a batch:
+        ``"langevin"`` treats them as any replay action (Langevin targets, weighted by their gain); ``"actions"`` fits
+        the demonstrated actions themselves, each with the batch's mean weight ``λ_f`` (other algorithms ignore it)
     """
 
     def __init__(
@@ -69,7 +94,10 @@ class DemonstrationReplayBuffer(ReplayBuffer):
         handle_timeout_termination: bool = True,
         demonstration_fraction: float = 0.5,
         demonstration_size: int = 100_000,
+        demonstration_targets: str = "langevin",
     ):
+        if demonstration_targets not in ("langevin", "actions"):
+            raise ValueError(f"Invalid demonstration_targets={demonstration_targets!r}: it must be 'langevin' or 'actions'.")
         if not 0.0 <= demonstration_fraction <= 1.0:
             raise ValueError(
                 f"demonstration_fraction is the share of each batch drawn from the demonstrations and must be in "
@@ -87,6 +115,7 @@ class DemonstrationReplayBuffer(ReplayBuffer):
             handle_timeout_termination=handle_timeout_termination,
         )
         self.demonstration_fraction = float(demonstration_fraction)
+        self.demonstration_targets = demonstration_targets
         self.demonstrations = ReplayBuffer(
             demonstration_size,
             observation_space,
@@ -151,4 +180,5 @@ class DemonstrationReplayBuffer(ReplayBuffer):
         fields = [None if values[0] is None else th.cat(values) for values in zip(*parts, strict=True)]
         samples = DemonstrationSamples(*fields)  # type: ignore[arg-type]  # only the optional discounts can be None
         samples.n_demonstrations = n_demonstrations
+        samples.demonstration_targets = self.demonstration_targets
         return samples

@@ -413,9 +413,7 @@ class BatchRenormCritic(EnsembleCritic):
         try:
             from sb3_contrib.common.torch_layers import BatchRenorm1d
         except ImportError as error:
-            raise ImportError(
-                "critic_batch_renorm=True uses sb3-contrib's BatchRenorm1d: pip install 'sb3-contrib>=2.4'"
-            ) from error
+            raise ImportError("critic='batch_renorm' uses sb3-contrib's BatchRenorm1d: pip install 'sb3-contrib>=2.4'") from error
         return dict(pre_linear_modules=[BatchRenorm1d])
 
     def set_training_mode(self, mode: bool) -> None:

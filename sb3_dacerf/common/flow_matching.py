@@ -6,7 +6,7 @@ import torch as th
 from torch.nn import functional as F
 
 #: The weightings of the two terms of the actor loss (``flow_matching_weights``), see :func:`actor_loss_weights`
-FLOW_MATCHING_WEIGHTS = ("gain", "paper", "q_scale", "td3bc", "flowrl")
+FLOW_MATCHING_WEIGHTS = ("gain", "paper", "q_scale")
 
 
 def flow_matching_loss(
@@ -54,9 +54,7 @@ def actor_loss_weights(
       a shift of the reward; both terms grow linearly with the reward's scale, so their balance does not move with it
       either. The proportionality constant, which the paper does not give, is ``coef``.
     - ``"q_scale"``: ``κ = 1`` and ``λ_f = coef * mean|Q(s, π(s))| * g / mean(g)``: the imitation term grows
-      with ``|Q|``, so it depends on a shift of the reward (the weighting of version 0.1.0).
-    - ``"td3bc"``: TD3+BC's normalisation of the improvement term, ``κ = mean|Q(s, π(s))| / 2.5``.
-    - ``"flowrl"``: FlowRL's clamped exponential weight ``λ_f = clamp(0.1 coef exp(g - mean(g)), 1e-3, 1)``, ``κ = 1``.
+      with ``|Q|``, so it depends on a shift of the reward (the weighting of version 0.1.0, kept to reproduce it).
 
     :param method: One of :data:`FLOW_MATCHING_WEIGHTS`
     :param q_values_pi: ``Q(s, π(s))``, ``(batch, 1)`` (only its value is used)
@@ -77,8 +75,4 @@ def actor_loss_weights(
             return th.ones_like(mean_gain), coef * gain
         if method == "q_scale":
             return th.ones_like(mean_gain), coef * q_values_pi.abs().mean() * relative_gain
-        if method == "td3bc":
-            return (q_values_pi.abs().mean() / 2.5).clamp_min(1e-8), coef * relative_gain
-        if method == "flowrl":
-            return th.ones_like(mean_gain), (0.1 * coef * (gain - mean_gain).exp()).clamp(1e-3, 1.0)
     raise ValueError(f"Unknown flow_matching_weights={method!r}: it must be one of {', '.join(FLOW_MATCHING_WEIGHTS)}.")

@@ -56,11 +56,6 @@ def langevin_targets(
 
 
 @functools.cache
-def compiled_langevin_targets() -> Callable[..., th.Tensor]:
-    """:func:`langevin_targets` through ``torch.compile`` (compiled on the first call, ~30 s on a CPU)."""
-    return th.compile(langevin_targets, dynamic=False)
-
-
 def autograd_action_gradient(q_function: Callable[[th.Tensor], th.Tensor]) -> Callable[[th.Tensor], th.Tensor]:
     """
     ``∇_a Q(a)`` of any differentiable ``q_function`` (batch of actions to ``(batch, 1)`` Q-values), by autograd.
@@ -115,8 +110,8 @@ class MinQActionGradient:
     :class:`~sb3_dacerf.common.ensemble.LayerNormCritic`, or a batch renormalisation in running-statistics mode before
     each layer as in :class:`~sb3_dacerf.common.ensemble.BatchRenormCritic`, folded into that layer) the gradient is
     written out (forward pass, then the chain rule through the same weights, all the critics in one batched product
-    per layer) without building an autograd graph: the same numbers as autograd, faster, and ``torch.compile`` can
-    fuse it. Other critics (other activations, an SB3 ``ContinuousCritic``) fall back to autograd on the cached
+    per layer) without building an autograd graph: the same numbers as autograd, faster. Other critics (other
+    activations, an SB3 ``ContinuousCritic``) fall back to autograd on the cached
     features. Per sample, the gradient is that of the critic with the smallest Q (as autograd routes it through
     ``min``).
 

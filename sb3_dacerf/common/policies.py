@@ -18,6 +18,9 @@ from torch import nn
 from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleCritic, LayerNormCritic
 from sb3_dacerf.common.optim import get_optimizer_class
 
+#: The critics of :class:`TwinCriticPolicy` (its ``critic`` argument)
+CRITICS = ("mlp", "layer_norm", "batch_renorm")
+
 
 class GenerativeActor(BasePolicy, ABC):
     """
@@ -194,11 +197,12 @@ class TwinCriticPolicy(BasePolicy):
     :param share_features_extractor: Whether to share or not the features extractor
         between the actor and the critic (this saves computation time)
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
-    :param critic_layer_norm: Use critics with ``LayerNorm`` after every hidden layer (:class:`LayerNormCritic`)
-        instead of plain MLP critics (:class:`EnsembleCritic`, SB3's critic networks)
-    :param critic_batch_renorm: Use CrossQ's critics, with batch renormalisation before every linear layer
-        (:class:`BatchRenormCritic`, needs sb3-contrib) and no target networks: the algorithm then bootstraps from
-        the critics themselves, in one forward pass over the current and the next state-action pairs
+    :param critic: The critics' networks: ``"mlp"`` (plain MLPs, SB3's critic networks: :class:`EnsembleCritic`),
+        ``"layer_norm"`` (``LayerNorm`` after every hidden layer: :class:`LayerNormCritic`) or ``"batch_renorm"``
+        (CrossQ's critics, batch renormalisation before every linear layer: :class:`BatchRenormCritic`, needs
+        sb3-contrib; no target networks: the algorithm then bootstraps from the critics themselves, in one forward
+        pass over the current and the next state-action pairs). The booleans ``critic_layer_norm`` and
+        ``critic_batch_renorm`` of earlier versions are converted to it by the algorithms, with a ``FutureWarning``
     """
 
     actor_class: ClassVar[type[GenerativeActor]]
@@ -221,14 +225,10 @@ class TwinCriticPolicy(BasePolicy):
         n_critics: int = 2,
         share_features_extractor: bool = False,
         actor_kwargs: dict[str, Any] | None = None,
-        critic_layer_norm: bool = False,
-        critic_batch_renorm: bool = False,
+        critic: str = "mlp",
     ):
-        if critic_layer_norm and critic_batch_renorm:
-            raise ValueError(
-                "critic_layer_norm=True and critic_batch_renorm=True both choose the critics' normalisation: "
-                "pass critic_layer_norm=False with critic_batch_renorm=True (CrossQ's critics)"
-            )
+        if critic not in CRITICS:
+            raise ValueError(f"Invalid critic={critic!r}: it must be one of {', '.join(map(repr, CRITICS))}.")
         super().__init__(
             observation_space,
             action_space,
@@ -264,8 +264,8 @@ class TwinCriticPolicy(BasePolicy):
             }
         )
         self.share_features_extractor = share_features_extractor
-        self.critic_layer_norm = critic_layer_norm
-        self.critic_batch_renorm = critic_batch_renorm
+        #: The ``critic`` argument (``self.critic`` is the critics' module)
+        self.critic_kind = critic
 
         self._build(lr_schedule)
 
@@ -311,8 +311,7 @@ class TwinCriticPolicy(BasePolicy):
                 features_extractor_class=self.features_extractor_class,
                 features_extractor_kwargs=self.features_extractor_kwargs,
                 share_features_extractor=self.share_features_extractor,
-                critic_layer_norm=self.critic_layer_norm,
-                critic_batch_renorm=self.critic_batch_renorm,
+                critic=self.critic_kind,
             )
         )
         return data
@@ -323,12 +322,12 @@ class TwinCriticPolicy(BasePolicy):
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> EnsembleCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        critic_class: type[EnsembleCritic] = EnsembleCritic
-        if self.critic_layer_norm:
-            critic_class = LayerNormCritic
-        elif self.critic_batch_renorm:
-            critic_class = BatchRenormCritic
-        return critic_class(**critic_kwargs).to(self.device)
+        critic_classes: dict[str, type[EnsembleCritic]] = {
+            "mlp": EnsembleCritic,
+            "layer_norm": LayerNormCritic,
+            "batch_renorm": BatchRenormCritic,
+        }
+        return critic_classes[self.critic_kind](**critic_kwargs).to(self.device)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic=deterministic)

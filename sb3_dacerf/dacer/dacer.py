@@ -1,4 +1,6 @@
+import io
 import math
+import pathlib
 from typing import Any, ClassVar
 
 import numpy as np
@@ -7,13 +9,19 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 
+from sb3_dacerf.common.deprecation import (
+    critic_from_flags,
+    policy_kwarg_from_argument,
+    reject_unknown_arguments,
+    warn_renamed,
+)
 from sb3_dacerf.common.twin_critic import (
     HyperparameterRule,
     TwinCriticAlgorithm,
     integer_at_least,
-    merge_policy_kwarg,
     resolve_target_entropy,
 )
 from sb3_dacerf.common.utils import frozen
@@ -34,9 +42,10 @@ class DACER(TwinCriticAlgorithm):
     official JAX code: https://github.com/happy-yan/DACER-Diffusion-with-Online-RL
 
     The defaults are the official code's (``relax/algorithm/dacer.py``, ``relax/network/dacer.py``,
-    ``relax/utils/diffusion.py`` and ``scripts/train_mujoco.py`` there): learning rate 1e-4, ``log α`` starting at
-    ``log 3``, the VP noise schedule, ``x_T ~ N(0, I)``, 20 steps, 3 x 256 Mish networks, ``tau=0.005``, policy
-    delay 2, α updated every 10,000 updates with learning rate 0.03 towards ``-0.9 * action_dim``.
+    ``relax/utils/diffusion.py`` and ``scripts/train_mujoco.py`` there): learning rate 1e-4, ``α`` learned from 3
+    (``log α = log 3``: ``ent_coef="auto"``) with its own learning rate 0.03, the VP noise schedule,
+    ``x_T ~ N(0, I)``, 20 steps, 3 x 256 Mish networks, ``tau=0.005``, policy delay 2, α updated every 10,000 updates
+    towards ``-0.9 * action_dim``.
     Differences from the official code: the critics are this package's clipped double-Q critics (shared with
     DACERF) instead of DSAC-T's distributional critics, there is no built-in reward scaling (its 0.2; use
     ``gymnasium.wrappers.TransformReward(env, lambda r: 0.2 * r)`` or ``VecNormalize``), and the mixture has
@@ -66,12 +75,12 @@ class DACER(TwinCriticAlgorithm):
         at a cost of more complexity.
     :param n_steps: When n_step > 1, uses n-step return (with the NStepReplayBuffer) when updating the Q-value network.
     :param policy_delay: Policy and target network updates happen once every ``policy_delay`` critic updates
-    :param n_diffusion_steps: Number of reverse diffusion steps per action (20 in both papers); also accepted in
-        ``policy_kwargs``, 20 if given in neither
+    :param ent_coef: Entropy regulator coefficient ``α``, the exploration noise being ``N(0, (0.15 α)²)`` (as
+        DACERF's): ``"auto"`` learns it starting from ``α = 3`` (the official code's ``log α = log 3``),
+        ``"auto_0.5"`` starting from 0.5; a float fixes it; ``0`` adds no noise
     :param target_entropy: Target entropy of the policy; ``"auto"`` is ``-0.9 * action_dim``
-    :param alpha_learning_rate: Learning rate (Adam) of ``log α``
-    :param initial_log_alpha: Initial ``log α`` (the exploration noise starts at ``0.15 exp(initial_log_alpha)``);
-        ``log 3``, as in the official code
+    :param alpha_learning_rate: Learning rate (Adam) of ``log α`` when it is learned (the official code's 0.03; the
+        actor's and critics' is ``learning_rate``), as DSAC's
     :param alpha_update_interval: The entropy is estimated and ``α`` updated once every that many updates
         (at the first update, then every ``alpha_update_interval``)
     :param entropy_samples: Number of actions sampled per state for the entropy estimate
@@ -79,13 +88,18 @@ class DACER(TwinCriticAlgorithm):
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
-        ``dict(net_arch=[256, 256], beta_schedule="linear", exploration_noise_scale=0.1)``
+        ``dict(net_arch=[256, 256], n_diffusion_steps=20, beta_schedule="linear", exploration_noise_scale=0.1)``:
+        ``n_diffusion_steps`` is the number of reverse diffusion steps per action (20 in both papers, the default);
+        see :class:`~sb3_dacerf.dacer.policies.DACERPolicy` for the others
     :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
         debug messages
     :param seed: Seed for the pseudo random generators
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    :param removed_arguments: Arguments of earlier versions, converted with a ``FutureWarning``: ``n_diffusion_steps``
+        (now in ``policy_kwargs``) and ``initial_log_alpha`` (now ``ent_coef="auto_<exp(initial_log_alpha)>"``);
+        anything else raises a ``TypeError``, as Python does
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -97,7 +111,7 @@ class DACER(TwinCriticAlgorithm):
     hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
         **TwinCriticAlgorithm.hyperparameter_rules,
         "policy_delay": integer_at_least(1),
-        "n_diffusion_steps": integer_at_least(1),
+        "n_diffusion_steps": integer_at_least(1),  # in policy_kwargs
         "alpha_learning_rate": HyperparameterRule(lambda value: value > 0, "> 0"),
         "alpha_update_interval": integer_at_least(1),
         "entropy_samples": integer_at_least(3, "an integer >= 3 (the entropy estimate fits 3 Gaussians)"),
@@ -123,10 +137,9 @@ class DACER(TwinCriticAlgorithm):
         optimize_memory_usage: bool = False,
         n_steps: int = 1,
         policy_delay: int = 2,
-        n_diffusion_steps: int | None = None,
+        ent_coef: str | float = "auto",
         target_entropy: str | float = "auto",
         alpha_learning_rate: float = 3e-2,
-        initial_log_alpha: float = math.log(3.0),
         alpha_update_interval: int = 10_000,
         entropy_samples: int = 200,
         stats_window_size: int = 100,
@@ -136,7 +149,15 @@ class DACER(TwinCriticAlgorithm):
         seed: int | None = None,
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
+        **removed_arguments: Any,
     ):
+        policy_kwargs = dict(policy_kwargs or {})
+        if "n_diffusion_steps" in removed_arguments:
+            n_diffusion_steps = removed_arguments.pop("n_diffusion_steps")
+            policy_kwargs = policy_kwarg_from_argument(policy_kwargs, "n_diffusion_steps", n_diffusion_steps, "DACER")
+        if "initial_log_alpha" in removed_arguments:
+            ent_coef = ent_coef_of_initial_log_alpha(removed_arguments.pop("initial_log_alpha"), ent_coef)
+        reject_unknown_arguments("DACER", removed_arguments)
         super().__init__(
             policy,
             env,
@@ -161,11 +182,13 @@ class DACER(TwinCriticAlgorithm):
             device=device,
         )
 
-        # A copy: the caller's policy_kwargs dict stays reusable
-        self.policy_kwargs = merge_policy_kwarg(self.policy_kwargs, "n_diffusion_steps", n_diffusion_steps, 20, "DACER")
+        # A copy (the caller's policy_kwargs dict stays reusable) in which the critic booleans of earlier versions are
+        # the critic choice; the number of steps written in it, so that a saved model records it
+        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DACER")
+        self.policy_kwargs.setdefault("n_diffusion_steps", 20)
         self.policy_delay = policy_delay
+        self.ent_coef = ent_coef
         self.alpha_learning_rate = alpha_learning_rate
-        self.initial_log_alpha = initial_log_alpha
         self.target_entropy = target_entropy
         self.alpha_update_interval = alpha_update_interval
         self.entropy_samples = entropy_samples
@@ -175,12 +198,61 @@ class DACER(TwinCriticAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
+    def _check_hyperparameters(self) -> None:
+        super()._check_hyperparameters()
+        self._initial_ent_coef()  # raises for an invalid ent_coef
+
     def _setup_model(self) -> None:
+        # A model saved by an earlier version: initial_log_alpha instead of ent_coef (its log α is in the saved policy)
+        if "initial_log_alpha" in self.__dict__:
+            self.ent_coef = f"auto_{math.exp(self.__dict__.pop('initial_log_alpha'))}"
+        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DACER")
         super()._setup_model()
         self.target_entropy = resolve_target_entropy(self.target_entropy, -0.9 * float(get_action_dim(self.action_space)))
         # log α lives in the actor (it sets the exploration noise of predict()); only this optimizer changes it
-        self.actor.log_alpha.fill_(self.initial_log_alpha)
-        self.alpha_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.alpha_learning_rate)
+        alpha = self._initial_ent_coef()
+        self.actor.log_alpha.fill_(math.log(alpha) if alpha > 0 else -math.inf)
+        self.ent_coef_optimizer: th.optim.Adam | None = None
+        if isinstance(self.ent_coef, str):
+            self.ent_coef_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.alpha_learning_rate)
+
+    def _initial_ent_coef(self) -> float:
+        """The initial ``α`` of ``ent_coef``; a ``ValueError`` naming the valid values for anything else."""
+        value: Any = self.ent_coef
+        error = (
+            f"Invalid ent_coef={self.ent_coef!r}: it must be 'auto' (learned from α = 3, the official code's), "
+            "'auto_<initial α > 0>' (e.g. 'auto_0.5'), or a number >= 0 (fixed α; 0: no exploration noise)."
+        )
+        if isinstance(value, str):
+            if value == "auto":
+                return 3.0
+            try:
+                value = float(value[len("auto_") :]) if value.startswith("auto_") else math.nan
+            except ValueError:
+                value = math.nan
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(error)
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not (0 <= value < math.inf):
+            raise ValueError(error)
+        return float(value)
+
+    def set_parameters(
+        self,
+        load_path_or_dict: str | pathlib.Path | io.BufferedIOBase | dict[str, Any],
+        exact_match: bool = True,
+        device: th.device | str = "auto",
+    ) -> None:
+        """
+        See :meth:`BaseAlgorithm.set_parameters`. Models saved by earlier versions, whose ``α`` optimizer was named
+        ``alpha_optimizer``, load too.
+        """
+        params = load_path_or_dict
+        if not isinstance(params, dict):
+            _, params, _ = load_from_zip_file(params, device=device)
+        if "alpha_optimizer" in params:
+            params = {("ent_coef_optimizer" if name == "alpha_optimizer" else name): value for name, value in params.items()}
+        super().set_parameters(params, exact_match=exact_match, device=device)
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
@@ -214,17 +286,17 @@ class DACER(TwinCriticAlgorithm):
 
             # Entropy regulator, at the first update and every `alpha_update_interval` updates (like the official
             # step counter, which starts at 0): estimate H(π(·|s)) and step log α on J(α) = -log α (H_target - H)
-            if (self._n_updates - 1) % self.alpha_update_interval == 0:
+            if self.ent_coef_optimizer is not None and (self._n_updates - 1) % self.alpha_update_interval == 0:
                 self.entropy = self._estimate_entropy(replay_data.observations)
                 # ∂J(α)/∂log α = H - H_target: the noise shrinks while the policy is more random than the target
                 self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, self.entropy - float(self.target_entropy))
-                self.alpha_optimizer.step()
+                self.ent_coef_optimizer.step()
 
         self.logger.record("train/n_updates", self._n_updates)
         self.logger.record("train/critic_loss", np.mean(critic_losses))
         if len(actor_losses) > 0:
             self.logger.record("train/actor_loss", np.mean(actor_losses))
-        self.logger.record("train/alpha", self.actor.log_alpha.exp().item())
+        self.logger.record("train/ent_coef", self.actor.log_alpha.exp().item())
         self.logger.record("train/entropy", self.entropy)
 
     @th.no_grad()
@@ -239,4 +311,23 @@ class DACER(TwinCriticAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, saved_variables = super()._get_torch_save_params()
-        return [*state_dicts, "alpha_optimizer"], saved_variables
+        if self.ent_coef_optimizer is not None:
+            state_dicts = [*state_dicts, "ent_coef_optimizer"]
+        return state_dicts, saved_variables
+
+
+def ent_coef_of_initial_log_alpha(initial_log_alpha: float, ent_coef: str | float) -> str:
+    """
+    DACER's ``initial_log_alpha`` of earlier versions as ``ent_coef`` (a learned ``α`` starting at
+    ``exp(initial_log_alpha)``), with a ``FutureWarning``.
+
+    :raises ValueError: when ``ent_coef`` was given too (it is not ``"auto"``)
+    """
+    if ent_coef != "auto":
+        raise ValueError(
+            f"DACER: initial_log_alpha={initial_log_alpha!r} and ent_coef={ent_coef!r} both set the temperature: give "
+            "ent_coef alone (ent_coef='auto_<initial α>' learns α from that value)."
+        )
+    replacement = f"auto_{math.exp(initial_log_alpha):g}"
+    warn_renamed(f"DACER(initial_log_alpha={initial_log_alpha!r})", f"ent_coef={replacement!r}", stacklevel=4)
+    return f"auto_{math.exp(initial_log_alpha)}"

@@ -1,5 +1,6 @@
 import functools
 import math
+import warnings
 from typing import Any, ClassVar
 
 import numpy as np
@@ -11,13 +12,13 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
+from sb3_dacerf.common.deprecation import critic_from_flags, policy_kwarg_from_argument, reject_unknown_arguments, warn_renamed
 from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
-from sb3_dacerf.common.langevin import MinQActionGradient, compiled_langevin_targets, langevin_targets
+from sb3_dacerf.common.langevin import MinQActionGradient, langevin_targets
 from sb3_dacerf.common.twin_critic import (
     HyperparameterRule,
     TwinCriticAlgorithm,
     integer_at_least,
-    merge_policy_kwarg,
     resolve_target_entropy,
 )
 from sb3_dacerf.common.utils import frozen
@@ -81,42 +82,37 @@ class DACERF(TwinCriticAlgorithm):
         step, so that a step moves a coordinate by ``η_a`` on average at most whatever the reward's scale (off:
         the paper's update, whose steps grow with the rewards; with returns in the thousands most targets then
         sit at the action bounds)
-    :param n_sampling_steps: Number of Euler steps of the flow sampler (1 in the paper: one network call per action);
-        also accepted in ``policy_kwargs``, 1 if given in neither
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
     :param flow_matching_weights: How the two terms of the actor loss are weighted: ``"gain"`` (scale- and
         shift-free, the default), ``"paper"`` (``λ_f = flow_matching_coef · ReLU(Q(s, a*) - Q(s, a_B))``, the
-        paper's weight taken literally, and the paper preset's), ``"q_scale"`` (``λ_f`` times ``mean|Q|``, version 0.1.0),
-        ``"td3bc"`` or ``"flowrl"`` (see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights`)
-    :param demonstration_targets: What the imitation term fits for the demonstrations of a
-        :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer` (its batches say how many they hold):
-        ``"langevin"`` treats them as any replay action (Langevin targets, weighted by their gain); ``"actions"`` fits
-        the demonstrated actions themselves, each with the batch's mean weight ``λ_f``
+        paper's weight taken literally, and the paper preset's) or ``"q_scale"`` (``λ_f`` times ``mean|Q|``, the
+        weighting of version 0.1.0), see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights`
     :param ent_coef: Entropy regulator coefficient ``α``, the exploration noise being ``N(0, (0.15 α)²)``.
         ``"auto"`` learns it starting from ``α = 3`` (DACER's initial value), ``"auto_0.5"`` starting from 0.5;
         a float fixes it; ``0`` adds no noise (the paper's mechanism)
     :param target_entropy: Target entropy of the noisy policy when ``α`` is learned; ``"auto"`` is ``-dim(A)``
         (SAC's choice)
-    :param entropy_estimate: How the policy's entropy is estimated to learn ``α``: ``"fit"`` fits a diagonal
-        Gaussian to 8 flow samples at each of 32 states of the batch (flow spread plus the noise's variance),
-        ``"noise"`` uses the closed-form entropy of the added noise only (the flow taken as deterministic)
-    :param compile_langevin: Run the Langevin loop through ``torch.compile`` (same targets). Meant for GPUs,
-        where kernel launches weigh more (not measured yet). On a CPU the first update compiles for ~30 s per batch
-        shape, and a whole gradient step then took 0.84-1.05x the eager step's time (benchmarks/README.md,
-        "Training iteration time"): the matrix products, not Python overhead, dominate there, so leave it off on CPU
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
-        ``dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16))``; the critics have
-        ``LayerNorm`` after every hidden layer unless it holds ``critic_layer_norm=False`` (SB3's MLP critics) or
-        ``critic_batch_renorm=True`` (CrossQ's batch-renorm critics, without target networks: ``tau`` is then unused)
+        ``dict(net_arch=[256, 256], n_sampling_steps=1, critic="layer_norm")``: ``n_sampling_steps`` is the number
+        of Euler steps of the flow sampler (1, the paper's, by default: one network call per action); ``critic`` is
+        ``"layer_norm"`` (``LayerNorm`` after every hidden layer) by default, ``"mlp"`` for SB3's MLP critics or
+        ``"batch_renorm"`` for CrossQ's batch-renorm critics, without target networks (``tau`` is then unused); see
+        :class:`~sb3_dacerf.dacerf.policies.DACERFPolicy` for the others
     :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
         debug messages
     :param seed: Seed for the pseudo random generators
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    :param removed_arguments: Arguments of earlier versions: ``n_sampling_steps`` (now in ``policy_kwargs``) and
+        ``demonstration_targets`` (now in the ``replay_buffer_kwargs`` of a
+        :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer`) are converted with a ``FutureWarning``;
+        ``compile_langevin`` and ``entropy_estimate="fit"`` are dropped with one (the targets and the estimate are
+        unchanged); ``entropy_estimate="noise"`` raises a ``ValueError``, and so does anything else
+        (a ``TypeError``, as Python's)
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -131,7 +127,7 @@ class DACERF(TwinCriticAlgorithm):
         "langevin_steps": integer_at_least(0, "an integer >= 0 (0 uses a_B as target)"),
         "langevin_step_size": HyperparameterRule(lambda value: value > 0, "> 0"),
         "langevin_temperature": HyperparameterRule(lambda value: value >= 0, ">= 0 (0 is noise-free gradient ascent)"),
-        "n_sampling_steps": integer_at_least(1),
+        "n_sampling_steps": integer_at_least(1),  # in policy_kwargs
         "flow_matching_coef": HyperparameterRule(lambda value: value >= 0, ">= 0"),
     }
     policy: DACERFPolicy
@@ -159,14 +155,10 @@ class DACERF(TwinCriticAlgorithm):
         langevin_step_size: float = 0.03,
         langevin_temperature: float = 0.01,
         langevin_normalize_gradient: bool = False,
-        n_sampling_steps: int | None = None,
         flow_matching_coef: float = 1.0,
         flow_matching_weights: str = "gain",
-        demonstration_targets: str = "langevin",
         ent_coef: str | float = "auto",
         target_entropy: str | float = "auto",
-        entropy_estimate: str = "fit",
-        compile_langevin: bool = False,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -174,7 +166,11 @@ class DACERF(TwinCriticAlgorithm):
         seed: int | None = None,
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
+        **removed_arguments: Any,
     ):
+        policy_kwargs, replay_buffer_kwargs = convert_removed_arguments(
+            removed_arguments, policy_kwargs or {}, replay_buffer_class, replay_buffer_kwargs or {}
+        )
         super().__init__(
             policy,
             env,
@@ -207,47 +203,52 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_normalize_gradient = langevin_normalize_gradient
         self.flow_matching_coef = flow_matching_coef
         self.flow_matching_weights = flow_matching_weights
-        self.demonstration_targets = demonstration_targets
         # Entropy regulator
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
-        self.entropy_estimate = entropy_estimate
         self.ent_coef_optimizer: th.optim.Adam | None = None
         self._n_actor_updates = 0
         # The last entropy estimate and flow spread (measured at every actor update only when α is learned)
         self._last_entropy_and_spread = (math.nan, math.nan)
-        # A copy: the caller's policy_kwargs dict stays reusable (e.g. for a SAC of the same size)
-        self.policy_kwargs = merge_policy_kwarg(self.policy_kwargs, "n_sampling_steps", n_sampling_steps, 1, "DACERF")
-        # LayerNorm critics unless policy_kwargs say otherwise (benchmarks/learning.md, "Critic options"). Written into
-        # policy_kwargs, so a saved model records its critics: files saved before this default (no such key) load
-        # with SB3's MLP critics, which they hold. CrossQ's critics (critic_batch_renorm=True) replace LayerNorm.
-        self.policy_kwargs.setdefault("critic_layer_norm", not self.policy_kwargs.get("critic_batch_renorm", False))
-        # torch.compile of the Langevin loop (an option: compiling costs ~30 s at the first update)
-        self.compile_langevin = compile_langevin
+        # A copy (the caller's policy_kwargs dict stays reusable, e.g. for a SAC of the same size) in which the critic
+        # booleans of earlier versions are the critic choice
+        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DACERF")
+        # One Euler step, and LayerNorm critics (benchmarks/learning.md, "Critic options"), unless policy_kwargs say
+        # otherwise. Written into policy_kwargs, so a saved model records them: files saved before LayerNorm critics
+        # became the default (no such key) load with SB3's MLP critics, which they hold.
+        self.policy_kwargs.setdefault("n_sampling_steps", 1)
+        self.policy_kwargs.setdefault("critic", "layer_norm")
 
         if _init_setup_model:
             self._setup_model()
 
     def _check_hyperparameters(self) -> None:
         super()._check_hyperparameters()
+        if self.flow_matching_weights in REMOVED_FLOW_MATCHING_WEIGHTS:
+            raise ValueError(
+                f"flow_matching_weights={self.flow_matching_weights!r} was removed (it lost to the default in "
+                "benchmarks/learning.md): use 'gain' (the default), 'paper' or 'q_scale'. To load a model saved with it, "
+                "pass custom_objects=dict(flow_matching_weights='gain') to load()."
+            )
         if self.flow_matching_weights not in FLOW_MATCHING_WEIGHTS:
             raise ValueError(
                 f"Invalid flow_matching_weights={self.flow_matching_weights!r}: "
                 f"it must be one of {', '.join(FLOW_MATCHING_WEIGHTS)}."
             )
-        if self.demonstration_targets not in ("langevin", "actions"):
-            raise ValueError(f"Invalid demonstration_targets={self.demonstration_targets!r}: it must be 'langevin' or 'actions'.")
-        if self.entropy_estimate not in ("fit", "noise"):
-            raise ValueError(f"Invalid entropy_estimate={self.entropy_estimate!r}: it must be 'fit' or 'noise'.")
 
     def _setup_model(self) -> None:
-        super()._setup_model()
-        if self.demonstration_targets == "actions" and not isinstance(self.replay_buffer, DemonstrationReplayBuffer):
-            raise ValueError(
-                "demonstration_targets='actions' fits the demonstrations of a DemonstrationReplayBuffer, but the replay "
-                f"buffer is a {type(self.replay_buffer).__name__}: pass replay_buffer_class=DemonstrationReplayBuffer "
-                "(sb3_dacerf.common.buffers), or leave demonstration_targets at 'langevin'"
+        # What a model saved by an earlier version holds: its data become the attributes before this runs
+        saved: dict[str, Any] = {
+            name: self.__dict__.pop(name)
+            for name in ("compile_langevin", "entropy_estimate", "demonstration_targets")
+            if name in self.__dict__
+        }
+        if saved:
+            self.policy_kwargs, self.replay_buffer_kwargs = convert_removed_arguments(
+                saved, self.policy_kwargs, self.replay_buffer_class, self.replay_buffer_kwargs, saved_model=True
             )
+        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DACERF")
+        super()._setup_model()
         self.target_entropy = resolve_target_entropy(self.target_entropy, -float(get_action_dim(self.action_space)))
         initial_ent_coef = self._initial_ent_coef()
         self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
@@ -321,8 +322,8 @@ class DACERF(TwinCriticAlgorithm):
     def langevin_targets(self, observations: th.Tensor, actions: th.Tensor, normalize_gradient: bool | None = None) -> th.Tensor:
         """
         The Langevin targets ``a*`` (Algorithm 1) that the actor update would build from ``actions`` at
-        ``observations``: this model's ``langevin_steps``, ``langevin_step_size``, ``langevin_temperature`` and
-        ``compile_langevin``, on ``∇_a min_j Q_j(s, a)`` of its twin critics (whose parameters get no gradient).
+        ``observations``: this model's ``langevin_steps``, ``langevin_step_size`` and ``langevin_temperature``, on
+        ``∇_a min_j Q_j(s, a)`` of its twin critics (whose parameters get no gradient).
 
         :param observations: A batch of (preprocessed) observations
         :param actions: The starting actions, in the policy's [-1, 1] space, one per observation
@@ -337,10 +338,9 @@ class DACERF(TwinCriticAlgorithm):
         """:meth:`langevin_targets`, and the ``∇_a min Q`` object it used (its features and ``start_min_q``)."""
         if normalize_gradient is None:
             normalize_gradient = self.langevin_normalize_gradient
-        langevin = compiled_langevin_targets() if self.compile_langevin else langevin_targets
         with frozen(self._critic_parameters()):
             gradient = MinQActionGradient(self.critic, observations)
-            targets = langevin(
+            targets = langevin_targets(
                 gradient,
                 actions,
                 n_steps=self.langevin_steps,
@@ -348,8 +348,6 @@ class DACERF(TwinCriticAlgorithm):
                 temperature=self.langevin_temperature,
                 normalize_gradient=normalize_gradient,
             )
-        if self.compile_langevin:  # what the compiled loop kept is not relied on
-            gradient.start_min_q = None
         return targets, gradient
 
     def actor_loss_terms(self, replay_data: Any) -> dict[str, th.Tensor]:
@@ -360,7 +358,7 @@ class DACERF(TwinCriticAlgorithm):
         :return: ``improvement_term`` (``mean(-Q(s, π(s)) / κ)``) and ``imitation_term``
             (``mean(λ_f ||v - (a* - a_0)||²)``), both differentiable with respect to the actor, and (detached)
             ``kappa``, ``lambda_f``, ``flow_error``, ``q_values_star``, ``q_values_buffer``, the state ``features``
-            and the flow-matching ``targets`` (``a*``, or the demonstrated actions with ``demonstration_targets="actions"``)
+            and the flow-matching ``targets`` (``a*``, unless the batch chose others: :meth:`imitation_targets`)
         """
         observations, actions_buffer = replay_data.observations, replay_data.actions
         with frozen(self._critic_parameters()):
@@ -371,7 +369,7 @@ class DACERF(TwinCriticAlgorithm):
                 q_values_star = q_gradient.min_q(actions_star)
                 # Q(s, a_B) was evaluated at the loop's first step, from a_B
                 q_values_buffer = q_gradient.start_min_q
-                if q_values_buffer is None:  # no Langevin step (langevin_steps=0), or the compiled loop
+                if q_values_buffer is None:  # no Langevin step (langevin_steps=0)
                     q_values_buffer = q_gradient.min_q(actions_buffer)
 
             # Policy improvement term: -Q(s, π_θ(s)), through the sampler from a_0 ~ N(0, I) (no exploration noise)
@@ -383,11 +381,7 @@ class DACERF(TwinCriticAlgorithm):
             kappa, lambda_f = actor_loss_weights(
                 self.flow_matching_weights, q_values_pi, q_values_star, q_values_buffer, self.flow_matching_coef
             )
-            targets = actions_star
-            n_demonstrations = getattr(replay_data, "n_demonstrations", 0) if self.demonstration_targets == "actions" else 0
-            if n_demonstrations > 0:  # the leading demonstrations: their own actions, at the batch's mean weight
-                targets = th.cat((actions_buffer[:n_demonstrations], actions_star[n_demonstrations:]))
-                lambda_f = th.cat((lambda_f.mean().expand(n_demonstrations, 1), lambda_f[n_demonstrations:]))
+            targets, lambda_f = self.imitation_targets(replay_data, actions_star, lambda_f)
             flow_error = flow_matching_loss(functools.partial(self.actor.velocity, features), targets)
         return dict(
             improvement_term=(-q_values_pi / kappa).mean(),
@@ -400,6 +394,22 @@ class DACERF(TwinCriticAlgorithm):
             features=features.detach(),
             targets=targets,
         )
+
+    @staticmethod
+    def imitation_targets(replay_data: Any, targets: th.Tensor, weights: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        The flow-matching targets of a batch and their weights: the Langevin targets ``a*`` with the weights ``λ_f``,
+        unless the batch has an ``imitation_targets(targets, weights)`` method of its own, which then decides (the
+        batches of a :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer` with
+        ``demonstration_targets="actions"`` put the demonstrated actions in place of the demonstrations' ``a*``).
+
+        :param replay_data: A batch of the replay buffer
+        :param targets: The Langevin targets ``a*`` of the batch ``(batch, action_dim)``
+        :param weights: Their weights ``λ_f`` ``(batch, 1)``
+        :return: The targets and weights the imitation term fits
+        """
+        choose = getattr(replay_data, "imitation_targets", None)
+        return (targets, weights) if choose is None else choose(targets, weights)
 
     def actor_gradient_ratio(self, terms: dict[str, th.Tensor]) -> float:
         """
@@ -435,8 +445,7 @@ class DACERF(TwinCriticAlgorithm):
         learns_ent_coef = self.ent_coef_optimizer is not None
         entropy, spread = self._last_entropy_and_spread
         if learns_ent_coef or diagnostic:
-            entropy, measured_spread = self._entropy_and_spread(terms["features"], spread=diagnostic)
-            spread = spread if math.isnan(measured_spread) else measured_spread  # else the last one measured
+            entropy, spread = self._entropy_and_spread(terms["features"])
             self._last_entropy_and_spread = (entropy, spread)
         if self.ent_coef_optimizer is not None:
             ent_coef_gradient = entropy - float(self.target_entropy)  # a float since _setup_model()
@@ -457,27 +466,19 @@ class DACERF(TwinCriticAlgorithm):
         return logs
 
     @th.no_grad()
-    def _entropy_and_spread(
-        self, features: th.Tensor, n_states: int = 32, n_samples: int = 8, spread: bool = True
-    ) -> tuple[float, float]:
+    def _entropy_and_spread(self, features: th.Tensor, n_states: int = 32, n_samples: int = 8) -> tuple[float, float]:
         """
-        Entropy estimate of the noisy policy, per ``entropy_estimate``, and the flow's own ``action_spread``:
-        the standard deviation of its actions over ``n_samples`` noises ``a_0`` at ``n_states`` fixed states,
-        averaged over action dimensions and states (0 = a deterministic flow). The flow is sampled only when the
-        estimate (``"fit"``) or the spread (``spread=True``) needs it; the spread is NaN when it is not measured.
+        Entropy estimate of the noisy policy and the flow's own ``action_spread``. The flow is sampled with
+        ``n_samples`` noises ``a_0`` at each of ``n_states`` states of the batch; a diagonal Gaussian fitted to each
+        state's actions, plus the exploration noise's variance, gives the entropy (averaged over the states), and
+        the standard deviation of the flow's actions, averaged over action dimensions and states, the spread
+        (0 = a deterministic flow).
         """
-        flow_variance = None
-        action_spread = math.nan
-        if self.entropy_estimate == "fit" or spread:
-            features = features[:n_states].repeat_interleave(n_samples, dim=0)
-            actions = self.actor.sample(features, self.actor.draw_noise(features))
-            flow_variance = actions.view(-1, n_samples, self.actor.action_dim).var(dim=1)  # (n_states, action_dim)
-            action_spread = flow_variance.sqrt().mean().item()
-        noise_variance = self.actor.exploration_std.pow(2)
-        if self.entropy_estimate == "noise" or flow_variance is None:  # the noise's closed form (flow taken as deterministic)
-            variance = noise_variance.expand(1, self.actor.action_dim)
-        else:
-            variance = flow_variance + noise_variance
+        features = features[:n_states].repeat_interleave(n_samples, dim=0)
+        actions = self.actor.sample(features, self.actor.draw_noise(features))
+        flow_variance = actions.view(-1, n_samples, self.actor.action_dim).var(dim=1)  # (n_states, action_dim)
+        action_spread = flow_variance.sqrt().mean().item()
+        variance = flow_variance + self.actor.exploration_std.pow(2)
         if not bool((variance > 0).all()):
             return -math.inf, action_spread
         entropy = 0.5 * (math.log(2 * math.pi * math.e) + variance.log()).sum(dim=1).mean().item()
@@ -507,10 +508,99 @@ PAPER_HYPERPARAMETERS: dict[str, Any] = dict(
     langevin_steps=20,
     langevin_step_size=0.03,
     langevin_temperature=0.01,
-    n_sampling_steps=1,
     flow_matching_weights="paper",
     train_freq=200,
     gradient_steps=1,
     ent_coef=0.0,
-    policy_kwargs=dict(net_arch=[256, 256], optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16), critic_layer_norm=False),
+    policy_kwargs=dict(
+        net_arch=[256, 256], n_sampling_steps=1, optimizer_class="RAD", optimizer_kwargs=dict(zeta=1e-16), critic="mlp"
+    ),
 )
+
+
+#: Values of ``flow_matching_weights`` that earlier versions took: ``"td3bc"`` and ``"flowrl"``
+REMOVED_FLOW_MATCHING_WEIGHTS = ("td3bc", "flowrl")
+
+
+def convert_removed_arguments(
+    arguments: dict[str, Any],
+    policy_kwargs: dict[str, Any],
+    replay_buffer_class: type[ReplayBuffer] | None,
+    replay_buffer_kwargs: dict[str, Any],
+    saved_model: bool = False,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """
+    The arguments of earlier versions of :class:`DACERF`, given to its constructor (or, ``saved_model=True``, read
+    from a saved model), moved to where they now belong.
+
+    :param arguments: The removed arguments by name
+    :param policy_kwargs: The model's ``policy_kwargs`` (not modified)
+    :param replay_buffer_class: The model's replay buffer class
+    :param replay_buffer_kwargs: The model's ``replay_buffer_kwargs`` (not modified)
+    :param saved_model: Whether the arguments come from a saved model, whose values at their defaults are dropped
+        without a warning (they change nothing)
+    :return: ``policy_kwargs`` and ``replay_buffer_kwargs``, with what moved there
+    :raises ValueError: for a value whose behaviour no longer exists
+    :raises TypeError: for an argument DACERF never had
+    """
+    arguments = dict(arguments)
+    policy_kwargs, replay_buffer_kwargs = dict(policy_kwargs), dict(replay_buffer_kwargs)
+    if "n_sampling_steps" in arguments:
+        policy_kwargs = policy_kwarg_from_argument(
+            policy_kwargs, "n_sampling_steps", arguments.pop("n_sampling_steps"), "DACERF", stacklevel=5
+        )
+    if "compile_langevin" in arguments:
+        compile_langevin = arguments.pop("compile_langevin")
+        if compile_langevin or not saved_model:
+            warnings.warn(
+                f"DACERF(compile_langevin={compile_langevin!r}) was removed and is ignored: the Langevin loop runs without "
+                "torch.compile (same targets; compiled, a CPU training step took 0.84-1.05x the time, benchmarks/README.md).",
+                FutureWarning,
+                stacklevel=3,
+            )
+    if "entropy_estimate" in arguments:
+        entropy_estimate = arguments.pop("entropy_estimate")
+        if entropy_estimate != "fit":
+            hint = (
+                " To load a model saved with it, pass custom_objects=dict(entropy_estimate='fit') to load()."
+                if saved_model
+                else ""
+            )
+            raise ValueError(
+                f"DACERF(entropy_estimate={entropy_estimate!r}) was removed: α is learned from the entropy of a Gaussian "
+                f"fitted to the flow's samples plus the noise (the former 'fit', the only estimate now).{hint}"
+            )
+        if not saved_model:
+            warnings.warn(
+                "DACERF(entropy_estimate='fit') was removed: it is the only estimate now; remove the argument.",
+                FutureWarning,
+                stacklevel=3,
+            )
+    if "demonstration_targets" in arguments:
+        demonstration_targets = arguments.pop("demonstration_targets")
+        is_demonstration_buffer = isinstance(replay_buffer_class, type) and issubclass(
+            replay_buffer_class, DemonstrationReplayBuffer
+        )
+        if is_demonstration_buffer:
+            replay_buffer_kwargs.setdefault("demonstration_targets", demonstration_targets)
+            if replay_buffer_kwargs["demonstration_targets"] != demonstration_targets:
+                raise ValueError(
+                    f"DACERF: demonstration_targets={demonstration_targets!r} and replay_buffer_kwargs=dict("
+                    f"demonstration_targets={replay_buffer_kwargs['demonstration_targets']!r}) disagree: give it once, in "
+                    "replay_buffer_kwargs."
+                )
+        elif demonstration_targets != "langevin":
+            raise ValueError(
+                f"demonstration_targets={demonstration_targets!r} fits the demonstrations of a DemonstrationReplayBuffer, "
+                "and is now its argument: pass replay_buffer_class=DemonstrationReplayBuffer (sb3_dacerf.common.buffers), "
+                f"replay_buffer_kwargs=dict(demonstration_targets={demonstration_targets!r})."
+            )
+        if not saved_model:
+            warn_renamed(
+                "DACERF(demonstration_targets=...)",
+                "replay_buffer_class=DemonstrationReplayBuffer, "
+                f"replay_buffer_kwargs=dict(demonstration_targets={demonstration_targets!r})",
+                stacklevel=4,
+            )
+    reject_unknown_arguments("DACERF", arguments)
+    return policy_kwargs, replay_buffer_kwargs

@@ -12,6 +12,7 @@ from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
+from sb3_dacerf.common.deprecation import critic_from_flags
 from sb3_dacerf.common.twin_critic import (
     HyperparameterRule,
     TwinCriticAlgorithm,
@@ -296,6 +297,8 @@ class DSAC(TwinCriticAlgorithm):
         self._initial_ent_coef()  # raises for an invalid ent_coef
 
     def _setup_model(self) -> None:
+        # policy_kwargs of earlier versions (a user's, an RL Zoo file's, a saved model's) hold the critic booleans
+        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DSAC")
         super()._setup_model()
         self.target_entropy = resolve_target_entropy(self.target_entropy, -float(get_action_dim(self.action_space)))
         initial_ent_coef = self._initial_ent_coef()

@@ -197,7 +197,7 @@ class DSACPolicy(TwinCriticPolicy):
 
     Takes the arguments of :class:`sb3_dacerf.common.policies.TwinCriticPolicy` (``net_arch``, ``activation_fn``,
     ``features_extractor_class``, ``optimizer_class``, ``n_critics``, ``share_features_extractor``,
-    ``critic_layer_norm``, ...), with the authors' networks by default (``net_arch=[256, 256, 256]``,
+    ``critic``: ``"mlp"`` or ``"layer_norm"``, ...), with the authors' networks by default (``net_arch=[256, 256, 256]``,
     ``activation_fn=nn.GELU``), and:
 
     :param log_std_min: Lower clip of the actor's ``log σ``
@@ -222,13 +222,13 @@ class DSACPolicy(TwinCriticPolicy):
         log_std_min: float = -20.0,
         log_std_max: float = 0.5,
         n_critics: int = 2,
-        critic_batch_renorm: bool = False,
+        critic: str = "mlp",
         **kwargs: Any,
     ):
-        if critic_batch_renorm:
+        if critic == "batch_renorm":
             raise ValueError(
-                "DSAC does not support critic_batch_renorm=True: its targets come from the target critics' return "
-                "distributions. Use critic_layer_norm=True for normalised critics, or DACERF for CrossQ's critics."
+                "DSAC does not support critic='batch_renorm': its targets come from the target critics' return "
+                "distributions. Use critic='layer_norm' for normalised critics, or DACERF for CrossQ's critics."
             )
         if n_critics != 2:
             raise ValueError(
@@ -242,6 +242,7 @@ class DSACPolicy(TwinCriticPolicy):
             net_arch=[256, 256, 256] if net_arch is None else net_arch,
             activation_fn=activation_fn,
             n_critics=n_critics,
+            critic=critic,
             actor_kwargs=dict(log_std_min=log_std_min, log_std_max=log_std_max),
             **kwargs,
         )
@@ -257,7 +258,7 @@ class DSACPolicy(TwinCriticPolicy):
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> GaussianCritic:  # type: ignore[override]  # a GaussianCritic is a ContinuousCritic
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return GaussianCritic(**critic_kwargs, layer_norm=self.critic_layer_norm).to(self.device)
+        return GaussianCritic(**critic_kwargs, layer_norm=self.critic_kind == "layer_norm").to(self.device)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
