@@ -13,6 +13,7 @@ per weighting and transform (one seed each).
 
 import argparse
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
 import numpy as np
 import torch as th

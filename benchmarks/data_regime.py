@@ -26,6 +26,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # learning_curves.py and timing.py
 

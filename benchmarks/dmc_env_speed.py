@@ -10,6 +10,7 @@ import argparse
 import platform
 import time
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
 import mujoco
 import numpy as np

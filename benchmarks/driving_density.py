@@ -28,6 +28,7 @@ import sys
 import time
 from typing import Any
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
 import numpy as np
 import torch

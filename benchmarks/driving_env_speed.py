@@ -45,6 +45,7 @@ import argparse
 import os
 import time
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
 import highway_env  # noqa: F401  (registers highway-v0 / intersection-v0)
 import numpy as np

@@ -30,6 +30,7 @@ import os
 import time
 from collections import Counter
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
 import numpy as np
 

@@ -36,6 +36,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
+
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent / "examples")]  # learning_curves.py and evaluate_driving.py
 from evaluate_driving import SCENARIOS, load_algorithm, load_driver, model_paths  # noqa: E402

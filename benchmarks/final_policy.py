@@ -28,6 +28,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import numpy as np
 
 HERE = Path(__file__).resolve().parent

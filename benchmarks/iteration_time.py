@@ -3,6 +3,7 @@ Training iteration time: one gradient step of DACERF beside DACER (20-step diffu
 
 A gradient step is what ``model.train()`` does per update, environment excluded: replay sampling, the critic update
 and the actor update amortised over the policy delay. Every configuration runs its algorithm's own defaults apart
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 from ``net_arch=[256, 256]`` (see ``timing.CONFIGURATIONS``): DACERF with the paper's 20 Langevin steps, policy
 delay 3 and one sampling step (no shortcut), ReLU; DACER with 20 diffusion steps, policy delay 2 and Mish
 activations, as in its official code; "DACER (ReLU)" the same with ReLU, for DACER against DACERF at equal

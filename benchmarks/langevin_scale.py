@@ -22,6 +22,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # learning_curves.py
 

@@ -30,6 +30,7 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import numpy as np
 import onnxruntime as ort
 import torch as th

@@ -25,6 +25,7 @@ import time
 import warnings
 from pathlib import Path
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import rl_zoo3.callbacks
 import torch as th
 from rl_zoo3.callbacks import ParallelTrainCallback

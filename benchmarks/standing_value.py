@@ -21,6 +21,7 @@ import argparse
 import json
 from collections import defaultdict
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
 import numpy as np
 

@@ -26,6 +26,7 @@ import pstats
 import random
 import statistics
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
 import torch as th
 from stable_baselines3 import SAC

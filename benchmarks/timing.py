@@ -24,6 +24,7 @@ from collections.abc import Callable, Hashable
 from pathlib import Path
 from typing import Any
 
+import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
 import numpy as np
 import torch as th

@@ -6,12 +6,17 @@ fixture (as sb3-contrib's tests are). A module about one algorithm overrides ``m
 returns that algorithm (pytest's fixture overriding), and gets the same ``fast`` settings.
 """
 
+import sys
+from pathlib import Path
 from typing import Any
 
 import pytest
 import torch as th
 
 from sb3_dacerf import DACER, DACERF, DSAC
+
+# The benchmark scripts some tests load by path import benchmarks/_checkout.py (the repository's package first)
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 # The suite's networks and batches are tiny: one thread avoids oversubscribing CI's two cores
 th.set_num_threads(1)
