@@ -20,7 +20,7 @@ from stable_baselines3.common.envs import FakeImageEnv, SimpleMultiObsEnv
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
-from sb3_dacerf import DACER, DACERF
+from sb3_dacerf import DACER, DACERF, DSAC
 from sb3_dacerf.common.policies import LEGACY_NETWORK_NAMES, GenerativeActor
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
 
@@ -110,11 +110,30 @@ def test_checks_and_persistence_still_import_from_twin_critic():
         ("policy_delay", float("nan")),
         ("target_entropy", "high"),
         ("target_entropy", float("inf")),
+        ("ent_coef", "automatic"),
+        ("ent_coef", "auto_"),
+        ("ent_coef", "auto_-1"),
+        ("ent_coef", "auto_0"),
+        ("ent_coef", -0.1),
+        ("ent_coef", float("inf")),
+        ("ent_coef", True),
+        ("ent_coef", None),
     ],
 )
 def test_invalid_shared_hyperparameters_name_their_valid_range(model_class, name, value):
     with pytest.raises(ValueError, match=f"Invalid {name}="):
         model_class("MlpPolicy", "Pendulum-v1", **{name: value})
+
+
+@pytest.mark.parametrize("ent_coef, alpha, learned", [("auto_0.5", 0.5, True), (0.2, 0.2, False), (0, 0.0, False)])
+def test_ent_coef_sets_the_initial_temperature(model_class, ent_coef, alpha, learned):
+    model = model_class("MlpPolicy", "Pendulum-v1", ent_coef=ent_coef)
+    assert model.actor.log_alpha.exp().item() == pytest.approx(alpha)
+    assert (model.ent_coef_optimizer is not None) == learned
+    # "auto": learned, from each algorithm's own start (DACER-F and DACER: α = 3; DSAC: α = e)
+    auto = model_class("MlpPolicy", "Pendulum-v1", ent_coef="auto")
+    assert auto.ent_coef_optimizer is not None
+    assert auto.actor.log_alpha.exp().item() == pytest.approx(math.e if model_class is DSAC else 3.0)
 
 
 def test_learns_and_logs(model_class, fast, tmp_path):

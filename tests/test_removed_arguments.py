@@ -3,6 +3,7 @@ Arguments of earlier versions, given by a user or read from a saved model: each 
 ``FutureWarning`` naming it, or is refused with a ``ValueError`` that says what to use; none changes behaviour silently.
 """
 
+import glob
 import math
 import os
 import warnings
@@ -80,16 +81,33 @@ def test_a_saved_model_with_compile_langevin_loads_with_a_warning(tmp_path):
         DACERF.load(tmp_path / "old")
 
 
-def test_the_shipped_drivers_keep_their_demonstration_targets_in_their_buffer():
-    """The intersection driver was saved with DACERF(demonstration_targets="actions"): its buffer now holds it."""
-    expected = {"dacerf_intersection": "actions", "dacerf_multilane": "langevin"}
-    for name, demonstration_targets in expected.items():
-        with pytest.warns(FutureWarning, match="critic_layer_norm=True"):
-            model = DACERF.load(os.path.join(EXAMPLES, f"{name}.zip"))
-        assert isinstance(model.replay_buffer, DemonstrationReplayBuffer)
-        assert model.replay_buffer.demonstration_targets == model.replay_buffer_kwargs["demonstration_targets"]
-        assert model.replay_buffer.demonstration_targets == demonstration_targets
-        assert not hasattr(model, "demonstration_targets") and model.policy_kwargs["critic"] == "layer_norm"
+@pytest.mark.parametrize("demonstration_targets", ["actions", "langevin"])
+def test_a_saved_model_with_demonstration_targets_keeps_them_in_its_buffer(tmp_path, demonstration_targets):
+    """A model saved with DACERF(demonstration_targets=...) loads with them in its DemonstrationReplayBuffer."""
+    model = DACERF("MlpPolicy", "Pendulum-v1", replay_buffer_class=DemonstrationReplayBuffer, **TINY)
+    model.demonstration_targets = demonstration_targets  # as a model saved by an earlier version holds it
+    model.replay_buffer_kwargs = {"demonstration_fraction": 0.5}
+    model.save(tmp_path / "old")
+    loaded = DACERF.load(tmp_path / "old")
+    assert isinstance(loaded.replay_buffer, DemonstrationReplayBuffer) and not hasattr(loaded, "demonstration_targets")
+    assert loaded.replay_buffer.demonstration_targets == loaded.replay_buffer_kwargs["demonstration_targets"]
+    assert loaded.replay_buffer.demonstration_targets == demonstration_targets
+
+
+@pytest.mark.parametrize(
+    "name", sorted(os.path.basename(path)[: -len(".zip")] for path in glob.glob(os.path.join(EXAMPLES, "*.zip")))
+)
+def test_the_shipped_drivers_load_without_a_deprecation_warning(name):
+    """The drivers in examples/models are saved in this version's format: nothing to convert, nothing to warn about."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)
+        warnings.simplefilter("error", DeprecationWarning)
+        model = DACERF.load(os.path.join(EXAMPLES, f"{name}.zip"))
+    # The intersection driver fits the demonstrated actions, the multi-lane driver their Langevin targets
+    expected = {"dacerf_intersection": "actions", "dacerf_multilane": "langevin"}[name]
+    assert isinstance(model.replay_buffer, DemonstrationReplayBuffer)
+    assert model.replay_buffer.demonstration_targets == model.replay_buffer_kwargs["demonstration_targets"] == expected
+    assert model.policy_kwargs == {"n_sampling_steps": 1, "critic": "layer_norm"}
 
 
 def test_dacer_0_1_0_model_loads_its_temperature_as_ent_coef_and_its_optimizer_state():

@@ -9,7 +9,13 @@ from typing import Any
 
 
 def warn_renamed(old: str, new: str, stacklevel: int = 3) -> None:
-    """A ``FutureWarning``: ``old`` is deprecated, ``new`` replaces it (it is converted this time)."""
+    """
+    A ``FutureWarning``: ``old`` is deprecated, ``new`` replaces it (it is converted this time).
+
+    :param old: What was given, as the user wrote it (e.g. ``"policy_kwargs critic_layer_norm=True"``)
+    :param new: What to write instead
+    :param stacklevel: As for :func:`warnings.warn`, so that the warning points at the user's call
+    """
     warnings.warn(
         f"{old} is deprecated and will be removed: use {new} instead (converted this time).", FutureWarning, stacklevel=stacklevel
     )
@@ -53,9 +59,14 @@ def policy_kwarg_from_argument(
 ) -> dict[str, Any]:
     """
     ``name`` given to the algorithm's constructor, where it is deprecated (it is a policy argument): a
-    ``FutureWarning`` (``stacklevel`` as for :func:`warnings.warn`, counted from :func:`warn_renamed`), and a copy
-    of ``policy_kwargs`` holding it.
+    ``FutureWarning``, and a copy of ``policy_kwargs`` holding it.
 
+    :param policy_kwargs: The algorithm's ``policy_kwargs`` (not modified)
+    :param name: The argument's name (e.g. ``"n_sampling_steps"``)
+    :param value: Its value, as given to the constructor
+    :param owner: The algorithm, for the messages (e.g. ``"DACERF"``)
+    :param stacklevel: As for :func:`warnings.warn`, counted from :func:`warn_renamed`
+    :return: ``policy_kwargs`` holding ``name=value``
     :raises ValueError: when ``policy_kwargs`` holds another value of ``name`` (neither silently wins)
     """
     if name in policy_kwargs and policy_kwargs[name] != value:
@@ -68,6 +79,12 @@ def policy_kwarg_from_argument(
 
 
 def reject_unknown_arguments(owner: str, arguments: dict[str, Any]) -> None:
-    """Python's own ``TypeError`` for keyword arguments that no conversion took."""
+    """
+    Python's own ``TypeError`` for keyword arguments that no conversion took.
+
+    :param owner: The class whose constructor was called (e.g. ``"DACERF"``)
+    :param arguments: The keyword arguments left over (nothing happens when empty)
+    :raises TypeError: naming the first of them
+    """
     if arguments:
         raise TypeError(f"{owner}.__init__() got an unexpected keyword argument {next(iter(arguments))!r}")

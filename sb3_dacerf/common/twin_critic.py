@@ -26,7 +26,6 @@ from sb3_dacerf.common.validation import (
     UnsupportedActionSpaceError,
     check_action_space,
     integer_at_least,
-    merge_policy_kwarg,
     resolve_target_entropy,
 )
 
@@ -37,7 +36,6 @@ __all__ = [
     "UnsupportedActionSpaceError",
     "check_action_space",
     "integer_at_least",
-    "merge_policy_kwarg",
     "min_q",
     "resolve_target_entropy",
     "saved_policy_class",
@@ -149,7 +147,7 @@ class TwinCriticAlgorithm(TwinCriticChecks, TwinCriticPersistence):
             next_actions = self.actor(replay_data.next_observations)
         critic = self.critic
         if isinstance(critic, BatchRenormCritic):
-            # CrossQ's critics (critic_batch_renorm): no target networks; one forward pass over (s, a) and (s', a') so
+            # CrossQ's critics (critic="batch_renorm"): no target networks; one forward pass over (s, a) and (s', a') so
             # that the batch statistics are those of both, in training mode for this pass only
             critic.set_bn_training_mode(True)
             try:

@@ -184,15 +184,31 @@ def resolve_target_entropy(target_entropy: Any, auto: float) -> float:
     return float(target_entropy)
 
 
-def merge_policy_kwarg(policy_kwargs: dict[str, Any], name: str, value: Any, default: Any, algorithm: str) -> dict[str, Any]:
+def initial_ent_coef(ent_coef: Any, auto: float, valid_values: str) -> float:
     """
-    A copy of ``policy_kwargs`` with the policy argument ``name`` that the algorithm also takes as its own argument:
-    the constructor's ``value`` if given, else the one in ``policy_kwargs``, else ``default``; both given and
-    different is an error (neither silently wins).
+    The initial temperature ``α`` that SB3's ``ent_coef`` asks for: ``auto`` for ``"auto"`` (learned),
+    ``x`` for ``"auto_x"`` (learned, from ``x > 0``), the number itself for a number ``>= 0`` (fixed).
+
+    :param ent_coef: The algorithm's ``ent_coef``
+    :param auto: The initial ``α`` of ``"auto"``
+    :param valid_values: The end of the error message: the valid values, as the algorithm describes them
+    :return: The initial ``α``
+    :raises ValueError: for anything else, naming the valid values
     """
-    if value is not None and name in policy_kwargs and policy_kwargs[name] != value:
-        raise ValueError(
-            f"{algorithm}: {name}={value!r} and policy_kwargs=dict({name}={policy_kwargs[name]!r}) disagree: "
-            f"give {name} once, as an argument of {algorithm}(...) or in policy_kwargs."
-        )
-    return {**policy_kwargs, name: value if value is not None else policy_kwargs.get(name, default)}
+    error = f"Invalid ent_coef={ent_coef!r}: it must be {valid_values}"
+    value: Any = ent_coef
+    if isinstance(value, str):
+        if value == "auto":
+            return auto
+        if not value.startswith("auto_"):
+            raise ValueError(error)
+        try:
+            value = float(value[len("auto_") :])
+        except ValueError:
+            raise ValueError(error) from None
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(error)
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not (0 <= value < math.inf):
+        raise ValueError(error)
+    return float(value)

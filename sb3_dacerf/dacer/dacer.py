@@ -18,13 +18,9 @@ from sb3_dacerf.common.deprecation import (
     reject_unknown_arguments,
     warn_renamed,
 )
-from sb3_dacerf.common.twin_critic import (
-    HyperparameterRule,
-    TwinCriticAlgorithm,
-    integer_at_least,
-    resolve_target_entropy,
-)
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
 from sb3_dacerf.common.utils import frozen
+from sb3_dacerf.common.validation import HyperparameterRule, initial_ent_coef, integer_at_least, resolve_target_entropy
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
 from sb3_dacerf.dacer.policies import CnnPolicy, DACERPolicy, DiffusionActor, MlpPolicy, MultiInputPolicy
 
@@ -218,24 +214,12 @@ class DACER(TwinCriticAlgorithm):
 
     def _initial_ent_coef(self) -> float:
         """The initial ``α`` of ``ent_coef``; a ``ValueError`` naming the valid values for anything else."""
-        value: Any = self.ent_coef
-        error = (
-            f"Invalid ent_coef={self.ent_coef!r}: it must be 'auto' (learned from α = 3, the official code's), "
-            "'auto_<initial α > 0>' (e.g. 'auto_0.5'), or a number >= 0 (fixed α; 0: no exploration noise)."
+        return initial_ent_coef(
+            self.ent_coef,
+            3.0,
+            "'auto' (learned from α = 3, the official code's), 'auto_<initial α > 0>' (e.g. 'auto_0.5'), "
+            "or a number >= 0 (fixed α; 0: no exploration noise).",
         )
-        if isinstance(value, str):
-            if value == "auto":
-                return 3.0
-            try:
-                value = float(value[len("auto_") :]) if value.startswith("auto_") else math.nan
-            except ValueError:
-                value = math.nan
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(error)
-            return value
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not (0 <= value < math.inf):
-            raise ValueError(error)
-        return float(value)
 
     def set_parameters(
         self,

@@ -15,13 +15,9 @@ from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.common.deprecation import critic_from_flags, policy_kwarg_from_argument, reject_unknown_arguments, warn_renamed
 from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
 from sb3_dacerf.common.langevin import MinQActionGradient, langevin_targets
-from sb3_dacerf.common.twin_critic import (
-    HyperparameterRule,
-    TwinCriticAlgorithm,
-    integer_at_least,
-    resolve_target_entropy,
-)
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
 from sb3_dacerf.common.utils import frozen
+from sb3_dacerf.common.validation import HyperparameterRule, initial_ent_coef, integer_at_least, resolve_target_entropy
 from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, FlowActor, MlpPolicy, MultiInputPolicy
 
 
@@ -260,27 +256,13 @@ class DACERF(TwinCriticAlgorithm):
         return isinstance(self.ent_coef, str)
 
     def _initial_ent_coef(self) -> float:
-        """The initial ``α`` of ``ent_coef`` (checked: 0 turns the regulator off, learned values start above 0)."""
-        value: Any = self.ent_coef
-        error = (
-            f"Invalid ent_coef={self.ent_coef!r}: it must be 'auto' (learned from α = 3), 'auto_<initial α > 0>' "
-            "(e.g. 'auto_0.5'), a number >= 0 (fixed α), or 0 for no exploration noise (the paper's mechanism)."
+        """The initial ``α`` of ``ent_coef``; a ``ValueError`` naming the valid values for anything else."""
+        return initial_ent_coef(
+            self.ent_coef,
+            3.0,
+            "'auto' (learned from α = 3), 'auto_<initial α > 0>' (e.g. 'auto_0.5'), a number >= 0 (fixed α), "
+            "or 0 for no exploration noise (the paper's mechanism).",
         )
-        if isinstance(value, str):
-            if value == "auto":
-                return 3.0
-            if not value.startswith("auto_"):
-                raise ValueError(error)
-            try:
-                value = float(value[len("auto_") :])
-            except ValueError:
-                raise ValueError(error) from None
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(error)
-            return value
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not (0 <= value < math.inf):
-            raise ValueError(error)
-        return float(value)
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)

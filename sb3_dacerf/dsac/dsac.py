@@ -13,13 +13,9 @@ from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_dacerf.common.deprecation import critic_from_flags
-from sb3_dacerf.common.twin_critic import (
-    HyperparameterRule,
-    TwinCriticAlgorithm,
-    integer_at_least,
-    resolve_target_entropy,
-)
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
 from sb3_dacerf.common.utils import frozen
+from sb3_dacerf.common.validation import HyperparameterRule, initial_ent_coef, integer_at_least, resolve_target_entropy
 from sb3_dacerf.dsac.policies import CnnPolicy, DSACPolicy, GaussianActor, GaussianCritic, MlpPolicy, MultiInputPolicy
 
 #: ``ε`` of the weighting of the mean and standard-deviation gradients (``bias`` in the authors' code)
@@ -313,26 +309,12 @@ class DSAC(TwinCriticAlgorithm):
 
     def _initial_ent_coef(self) -> float:
         """The initial ``α`` of ``ent_coef``; a ``ValueError`` naming the valid values for anything else."""
-        value: Any = self.ent_coef
-        error = (
-            f"Invalid ent_coef={self.ent_coef!r}: it must be 'auto' (learned from α = e, the authors' log α = 1), "
-            "'auto_<initial α > 0>' (e.g. 'auto_1', SB3's SAC start) or a number >= 0 (a fixed α)."
+        return initial_ent_coef(
+            self.ent_coef,
+            AUTO_INITIAL_ENT_COEF,
+            "'auto' (learned from α = e, the authors' log α = 1), 'auto_<initial α > 0>' (e.g. 'auto_1', "
+            "SB3's SAC start) or a number >= 0 (a fixed α).",
         )
-        if isinstance(value, str):
-            if value == "auto":
-                return AUTO_INITIAL_ENT_COEF
-            if not value.startswith("auto_"):
-                raise ValueError(error)
-            try:
-                value = float(value[len("auto_") :])
-            except ValueError:
-                raise ValueError(error) from None
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(error)
-            return value
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not (0 <= value < math.inf):
-            raise ValueError(error)
-        return float(value)
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
