@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import functools
 import pstats
 import random
-import statistics
 
 import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 import gymnasium as gym
@@ -32,7 +32,7 @@ import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.logger import Logger
-from timing import CLOCKS, machine_name
+from timing import CLOCKS, interleaved_medians, machine_name
 
 from sb3_dacerf import DACERF
 
@@ -136,18 +136,11 @@ def learn_ratio(
     """
     algorithms = algorithms or {"DACERF": DACERF, "SAC": SAC}
     models = {name: make_learner(algorithm, env_id) for name, algorithm in algorithms.items()}
-    now = CLOCKS[clock]
     for model in models.values():  # past learning_starts (100 for both), so that every timed step trains
         model.learn(block, reset_num_timesteps=False)
-    samples: dict[str, list[float]] = {name: [] for name in models}
-    names = list(models)
-    for _ in range(blocks):
-        random.shuffle(names)
-        for name in names:
-            start = now()
-            models[name].learn(block, reset_num_timesteps=False)
-            samples[name].append((now() - start) / block)
-    return {name: statistics.median(values) for name, values in samples.items()}
+    calls = {name: functools.partial(model.learn, block, reset_num_timesteps=False) for name, model in models.items()}
+    medians = interleaved_medians(calls, rounds=blocks, synchronize=False, clock=clock)
+    return {str(name): seconds / block for name, seconds in medians.items()}
 
 
 LEARN_ENVS = ("Pendulum-v1", "DMC-walker-walk-v0")
