@@ -10,6 +10,7 @@ import warnings
 
 import pytest
 import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
 
 from sb3_dacerf import DACER, DACERF
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
@@ -103,11 +104,15 @@ def test_the_shipped_drivers_load_without_a_deprecation_warning(name):
         warnings.simplefilter("error", FutureWarning)
         warnings.simplefilter("error", DeprecationWarning)
         model = DACERF.load(os.path.join(EXAMPLES, f"{name}.zip"))
+    assert model.policy_kwargs == {"n_sampling_steps": 1, "critic": "layer_norm"}
+    if name.endswith("_rl"):
+        # Trained purely by RL: SB3's own buffer, no demonstrations anywhere
+        assert type(model.replay_buffer) is ReplayBuffer and model.replay_buffer_kwargs == {}
+        return
     # The intersection driver fits the demonstrated actions, the multi-lane driver their Langevin targets
     expected = {"dacerf_intersection": "actions", "dacerf_multilane": "langevin"}[name]
     assert isinstance(model.replay_buffer, DemonstrationReplayBuffer)
     assert model.replay_buffer.demonstration_targets == model.replay_buffer_kwargs["demonstration_targets"] == expected
-    assert model.policy_kwargs == {"n_sampling_steps": 1, "critic": "layer_norm"}
 
 
 def test_dacer_0_1_0_model_loads_its_temperature_as_ent_coef_and_its_optimizer_state():
