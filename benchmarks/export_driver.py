@@ -10,9 +10,10 @@ and ``examples/render_driving.py`` load (the format of the models in ``examples/
 A checkpoint is the folder ``<out>/checkpoints/<env>/<variant>-seed<N>/`` (``model.zip``, ``env.pkl``,
 ``replay_buffer.npz``, ``state.pkl``). From it ``STEM`` gets:
 
-- ``STEM.zip``: the model, loadable with ``DACERF.load`` / ``SAC.load``, without the replay buffer and, unless
-  ``--keep-optimizer``, without the optimizers' moment estimates (their settings are kept, so the model loads and
-  can train on, with Adam restarting from zero moments);
+- ``STEM.zip``: the model, loadable with its algorithm's ``load`` (``DACERF.load`` for the variants ``dacerf`` and
+  ``dacerf-paper``, ``DACER.load``, ``DSAC.load``, ``SAC.load`` for ``dacer``, ``dsac``, ``sac``), without the replay
+  buffer and, unless ``--keep-optimizer``, without the optimizers' moment estimates (their settings are kept, so the
+  model loads and can train on, with Adam restarting from zero moments);
 - ``STEM.json``: ``env_id``, ``density``, ``config`` and ``algo``, the metadata ``examples/train_driving.py --save``
   writes;
 - ``STEM_vecnormalize.pkl``: the run's observation statistics (``VecNormalize.save``, ``training=False``), if the run
@@ -40,10 +41,16 @@ import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed c
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent / "examples")]  # learning_curves.py and evaluate_driving.py
-from evaluate_driving import SCENARIOS, load_algorithm, load_driver, model_paths  # noqa: E402
+from evaluate_driving import (  # noqa: E402
+    ALGORITHMS,
+    SCENARIOS,
+    algorithm_names,
+    load_algorithm,
+    load_driver,
+    model_paths,
+    saved_algorithm,
+)
 
-#: The algorithms ``evaluate_driving.py`` loads (its ``--algo``)
-ALGORITHMS = ("dacerf", "sac")
 CHECKPOINT_FILES = ("model.zip", "env.pkl")
 
 
@@ -63,18 +70,6 @@ def path_names(folder: Path) -> tuple[str | None, str | None]:
     """The env id and the variant a checkpoint folder's path names (``<env>/<variant>-seed<N>``), or ``None``."""
     match = re.fullmatch(r"(.+)-seed\d+", folder.resolve().name)
     return folder.resolve().parent.name or None, match.group(1) if match else None
-
-
-def saved_algorithm(model_path: Path) -> str | None:
-    """
-    The algorithm of the policy class saved in a model zip, as a lower-case name (``dacerf``, ``sac``, ``dacer``,
-    ``td3``...), ``None`` if it cannot be read.
-    """
-    from sb3_dacerf.common.persistence import saved_policy_class
-
-    policy_class = saved_policy_class(model_path)
-    parts = policy_class.__module__.split(".") if policy_class is not None else []
-    return parts[1] if len(parts) >= 3 and parts[0] in ("sb3_dacerf", "stable_baselines3", "sb3_contrib") else None
 
 
 def variant_algorithm(variant: str | None) -> str | None:
@@ -144,9 +139,9 @@ def checkpoint_algorithm(folder: Path, algo: str | None) -> str:
         sys.exit(f"error: {folder / 'model.zip'} holds a {saved_algo} model, not {algo}: leave out --algo")
     algo = algo or saved_algo or variant_algorithm(path_names(folder)[1])
     if algo is None:
-        sys.exit(f"error: cannot tell the algorithm of {folder / 'model.zip'}: pass --algo ({' or '.join(ALGORITHMS)})")
+        sys.exit(f"error: cannot tell the algorithm of {folder / 'model.zip'}: pass --algo ({algorithm_names()})")
     if algo not in ALGORITHMS:
-        sys.exit(f"error: {folder} is a {algo} run: evaluate_driving.py loads {' and '.join(ALGORITHMS)} models only")
+        sys.exit(f"error: {folder} is a {algo} run: evaluate_driving.py loads {algorithm_names('and')} models only")
     return algo
 
 
@@ -186,7 +181,7 @@ def export(
     :param stem: path of the exported files without suffix
     :param env_id: the environment id (default: the checkpoint's)
     :param env_kwargs: ``gym.make`` keyword arguments, ``density`` and ``config`` (default: the checkpoint's)
-    :param algo: ``dacerf`` or ``sac`` (default: the saved policy's algorithm)
+    :param algo: ``dacerf``, ``dacer``, ``dsac`` or ``sac`` (default: the saved policy's algorithm)
     :param keep_optimizer: keep the optimizers' moment estimates (about twice the file size)
     :return: the written paths, as ``evaluate_driving.model_paths``
     """
@@ -250,7 +245,7 @@ def main(argv: list[str] | None = None) -> dict[str, str]:
         type=json.loads,
         help='gym.make keyword arguments as JSON, e.g. \'{"config": {"collision_penalty": 500}}\' (default: the checkpoint\'s)',
     )
-    parser.add_argument("--algo", choices=ALGORITHMS, help="default: from the saved policy class")
+    parser.add_argument("--algo", choices=list(ALGORITHMS), help="default: from the saved policy class")
     parser.add_argument("--keep-optimizer", action="store_true", help="keep the optimizers' moment estimates")
     args = parser.parse_args(argv)
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):

@@ -1,6 +1,8 @@
 """
-Evaluate a trained DACERF (or SAC) driver on the paper's driving scenarios: total average return (TAR), arrival,
-collision and off-road rates and mean episode length over N seeded, deterministic episodes.
+Evaluate a trained driver (DACERF, DACER, DSAC or SAC) on the paper's driving scenarios: total average return
+(TAR), arrival, collision and off-road rates and mean episode length over N seeded episodes of deterministic actions
+(``predict(deterministic=True)``: DACERF's flow from a zero start, DACER's reverse diffusion from zero without
+posterior noise, DSAC's and SAC's ``tanh`` of the Gaussian's mean).
 
     python examples/evaluate_driving.py driving_multilane.zip --episodes 20
     python examples/evaluate_driving.py model.zip --env intersection --algo sac --vec-normalize stats.pkl
@@ -41,12 +43,24 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from stable_baselines3 import SAC
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
+from sb3_dacerf import DACER, DACERF, DSAC
 from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
 from sb3_dacerf.envs.driving.density import DENSITIES, DensitySpec, density_weights
 
 SCENARIOS = {"multilane": "DACERF-Multilane-v0", "intersection": "DACERF-Intersection-v0"}
+#: The algorithms the driving examples train and load, by the name ``--algo`` takes and the metadata's ``algo`` holds
+#: (``train_driving.py``, ``evaluate_driving.py``, ``render_driving.py``, ``benchmarks/export_driver.py``)
+ALGORITHMS: dict[str, type[OffPolicyAlgorithm]] = {"dacerf": DACERF, "dacer": DACER, "dsac": DSAC, "sac": SAC}
+
+
+def algorithm_names(conjunction: str = "or") -> str:
+    """The names of :data:`ALGORITHMS` for a message: ``dacerf, dacer, dsac or sac``."""
+    names = list(ALGORITHMS)
+    return f"{', '.join(names[:-1])} {conjunction} {names[-1]}"
 
 
 @dataclass
@@ -210,14 +224,64 @@ def format_results(env_id: str, results: dict[str, Any], n_episodes: int) -> str
     )
 
 
-def load_algorithm(algo: str):
-    if algo == "dacerf":
-        from sb3_dacerf import DACERF
+def load_algorithm(algo: str, source: str = "--algo") -> type[OffPolicyAlgorithm]:
+    """
+    The algorithm class of a name of :data:`ALGORITHMS`.
 
-        return DACERF
-    from stable_baselines3 import SAC
+    :param algo: ``dacerf``, ``dacer``, ``dsac`` or ``sac``
+    :param source: where the name comes from, for the error message (``--algo``, a metadata file, a saved policy)
+    :return: the class, e.g. ``DSAC`` for ``dsac``
+    """
+    if algo not in ALGORITHMS:
+        sys.exit(
+            f"error: {algo!r} (from {source}) is not an algorithm the driving examples load: they load "
+            f"{algorithm_names('and')} models (--algo {algorithm_names()})"
+        )
+    return ALGORITHMS[algo]
 
-    return SAC
+
+def saved_algorithm(model_path: str | os.PathLike) -> str | None:
+    """
+    The algorithm of the policy class saved in a model zip, as a lower-case name (``dacerf``, ``dsac``, ``sac``,
+    ``td3``...), ``None`` if it cannot be read.
+
+    :param model_path: the model .zip
+    """
+    from sb3_dacerf.common.persistence import saved_policy_class
+
+    policy_class = saved_policy_class(model_path)
+    parts = policy_class.__module__.split(".") if policy_class is not None else []
+    return parts[1] if len(parts) >= 3 and parts[0] in ("sb3_dacerf", "stable_baselines3", "sb3_contrib") else None
+
+
+def load_model(paths: dict[str, str], algo: str | None = None, metadata_algo: str | None = None) -> OffPolicyAlgorithm:
+    """
+    Load a driver's model with the class of its algorithm: ``algo``, else the metadata's, else the one of the policy
+    class saved in the model (DACERF if that cannot be read). Exits with a message naming the problem if the file
+    holds another algorithm's model or cannot be loaded.
+
+    :param paths: the driver's files, as ``model_paths`` gives them
+    :param algo: a name of :data:`ALGORITHMS` (``--algo``)
+    :param metadata_algo: the metadata's ``algo``
+    """
+    if algo is not None:
+        algo_class = load_algorithm(algo)
+    elif metadata_algo is not None:
+        algo_class = load_algorithm(metadata_algo, repr(paths["metadata"]))
+    else:
+        saved = saved_algorithm(paths["model"])
+        algo_class = load_algorithm(saved, f"the policy saved in {paths['model']!r}") if saved else DACERF
+    try:
+        model = algo_class.load(paths["model"], device="cpu")
+    except Exception as error:  # SB3 raises various errors for a file of another class or a corrupt file
+        sys.exit(f"error: cannot load {paths['model']!r} as {algo_class.__name__} ({error}): check --algo ({algorithm_names()})")
+    # SAC.load accepts a file of this package's algorithms: the policy tells
+    if not isinstance(model.policy, algo_class.policy_aliases["MlpPolicy"]):
+        sys.exit(
+            f"error: cannot load {paths['model']!r} as {algo_class.__name__} (it holds a {type(model.policy).__name__}): "
+            f"check --algo ({algorithm_names()})"
+        )
+    return model
 
 
 def load_driver(
@@ -234,14 +298,14 @@ def load_driver(
     """
     Load a saved driver with what was saved beside it (see ``model_paths``), and make its environment.
 
-    Settings left at ``None`` come from the metadata JSON: the scenario, the algorithm (else ``dacerf``), the
+    Settings left at ``None`` come from the metadata JSON: the scenario, the algorithm (else the saved policy's), the
     density (else ``normal``) and the config (``config`` overrides single keys of it). The VecNormalize statistics
     beside the model are used unless ``vec_normalize`` names another file. Every problem (missing file, another
     scenario than the model's, a file of another class, spaces that do not match) exits with a message naming it.
 
     :param model_path: the model .zip (the suffix may be left out)
     :param scenario: ``multilane``, ``intersection`` or an env id
-    :param algo: ``dacerf`` or ``sac``
+    :param algo: ``dacerf``, ``dacer``, ``dsac`` or ``sac`` (:data:`ALGORITHMS`)
     :param vec_normalize: path of VecNormalize statistics saved with ``VecNormalize.save``
     :param density: ``sparse``, ``normal``, ``dense``, or a distribution to draw one per episode (``random``, a list,
         a dict of weights)
@@ -276,16 +340,7 @@ def load_driver(
     config = {**metadata.get("config", {}), **(config or {})}
     env = gym.make(env_id, density=density, config=config, render_mode=render_mode)
 
-    algo_class = load_algorithm(algo or metadata.get("algo", "dacerf"))
-    try:
-        model = algo_class.load(paths["model"], device="cpu")
-    except Exception as error:  # SB3 raises various errors for a file of another class or a corrupt file
-        sys.exit(f"error: cannot load {paths['model']!r} as {algo_class.__name__} ({error}): check --algo (dacerf or sac)")
-    if not isinstance(model.policy, algo_class.policy_aliases["MlpPolicy"]):  # SAC.load accepts a DACERF file
-        sys.exit(
-            f"error: cannot load {paths['model']!r} as {algo_class.__name__} (it holds a {type(model.policy).__name__}): "
-            "check --algo (dacerf or sac)"
-        )
+    model = load_model(paths, algo, metadata.get("algo"))
     for name in ("observation_space", "action_space"):
         if getattr(model, name).shape != getattr(env, name).shape:
             sys.exit(
@@ -348,7 +403,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "instead of a model (needs --env): the floor a trained driver must beat",
     )
     parser.add_argument("--env", choices=list(SCENARIOS), help="scenario (default: the one the model was trained on)")
-    parser.add_argument("--algo", choices=["dacerf", "sac"], help="model class (default: from the metadata, else dacerf)")
+    parser.add_argument(
+        "--algo", choices=list(ALGORITHMS), help="model class (default: from the metadata, else the saved policy's)"
+    )
     parser.add_argument("--vec-normalize", help="VecNormalize statistics .pkl (default: the one saved beside the model)")
     parser.add_argument(
         "--density",

@@ -7,7 +7,8 @@ braking for the vehicle ahead; its yielding to crossing traffic is off here): a 
 highway and an unprotected left turn at the intersection. It reads only the observation, so its source also shows
 how the observation is laid out.
 
-With ``--model STEM``, one episode of a trained driver: ``STEM.zip`` with the ``STEM.json`` metadata and
+With ``--model STEM``, one episode of a trained driver (DACERF, DACER, DSAC or SAC, its deterministic actions):
+``STEM.zip`` with the ``STEM.json`` metadata and
 ``STEM_vecnormalize.pkl`` statistics beside it (written by ``examples/train_driving.py --save`` or
 ``benchmarks/export_driver.py``; the models in ``examples/models/``), on the scenario and config it was trained
 with, loaded by ``evaluate_driving.load_driver``. ``--seed`` picks the episode; the default, 10,000, is the first
@@ -39,7 +40,7 @@ import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.envs.driving.scripted import ScriptedDriver
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from evaluate_driving import load_driver
+from evaluate_driving import ALGORITHMS, load_driver
 
 SCENARIOS = {
     # Seeds picked where the scripted tracker completes the manoeuvre; frame times [s] (None: spread over the episode).
@@ -147,7 +148,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--out-dir", default="driving_frames", help="folder of the PNG strips and GIFs")
     parser.add_argument("--frames", type=int, default=5, help="frames per strip, spread over the episode")
     parser.add_argument("--model", help="a trained driver, STEM or STEM.zip (default: the scripted tracker)")
-    parser.add_argument("--algo", choices=["dacerf", "sac"], help="class of --model (default: from its metadata)")
+    parser.add_argument("--algo", choices=list(ALGORITHMS), help="class of --model (default: from its metadata)")
     parser.add_argument("--config", type=json.loads, help="env config overrides of --model's, as JSON")
     parser.add_argument(
         "--seed",

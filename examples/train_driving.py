@@ -1,8 +1,8 @@
 """
-Train DACER-F (or SAC, for comparison) on the paper's driving scenarios, print progress (episodes, return, arrival,
-collision and off-road rates) while it trains, and report, over deterministic evaluation episodes, the paper's
-metrics: total average return (TAR), arrival rate (``info["is_success"]``: destination reached at the intersection,
-time limit reached safely on the highway), collision and off-road rates.
+Train DACER-F (or, for comparison, DACER, DSAC or SAC: ``--algo``) on the paper's driving scenarios, print progress
+(episodes, return, arrival, collision and off-road rates) while it trains, and report, over deterministic evaluation
+episodes, the paper's metrics: total average return (TAR), arrival rate (``info["is_success"]``: destination reached
+at the intersection, time limit reached safely on the highway), collision and off-road rates.
 
     python examples/train_driving.py --timesteps 2000 --eval-episodes 5       # short smoke run of both scenarios
     python examples/train_driving.py --env multilane --timesteps 100000 --n-envs 2 --vec-normalize --save runs/dacerf
@@ -28,9 +28,10 @@ empty buffer and waits ``--learning-starts`` steps again).
 Hyper-parameters: the algorithm's constructor defaults (for DACERF those of benchmarks/learning.md: entropy
 regulator on, actor loss weighted by the Langevin gain, lr 3e-4, batch 256, τ = 0.005), DACERF with
 ``langevin_normalize_gradient=True`` as ``hyperparams/dacerf.yml`` sets it for these scenarios, whose returns are in
-the thousands; ``--paper`` selects the
-paper's Table II values (learning rate 1e-4, replay batch 512, RAD, γ = 0.99, τ = 0.001, policy delay 3, Langevin
-η = 0.03, α = 0.01, 20 steps, no added exploration noise). The paper trains 5e5 iterations.
+the thousands; DACER and DSAC with their authors' defaults, SAC with SB3's (``--algo dacer``, ``dsac``,
+``sac``). ``--paper`` selects the paper's Table II values (learning rate 1e-4, replay batch 512, RAD, γ = 0.99,
+τ = 0.001, policy delay 3, Langevin η = 0.03, α = 0.01, 20 steps, no added exploration noise), of which DACER, DSAC
+and SAC take the learning rate, batch, τ and data regime. The paper trains 5e5 iterations.
 
 Data regime: by default every step of the ``--n-envs`` environments is followed by one gradient step (``--n-envs``
 transitions per gradient step). ``--steps-per-gradient S`` makes it S transitions per gradient step, as the paper's
@@ -67,7 +68,16 @@ from sb3_dacerf.envs.driving.common.observation import vehicle_rows
 from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from evaluate_driving import SCENARIOS, evaluate, format_results, load_algorithm, model_paths, parse_density, policy_act
+from evaluate_driving import (
+    ALGORITHMS,
+    SCENARIOS,
+    evaluate,
+    format_results,
+    load_algorithm,
+    model_paths,
+    parse_density,
+    policy_act,
+)
 
 
 class DrivingProgress(BaseCallback):
@@ -112,7 +122,7 @@ class DrivingProgress(BaseCallback):
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", choices=["all", *SCENARIOS], help="scenario(s) to train on (default: all; with --load its own)")
-    parser.add_argument("--algo", choices=["dacerf", "sac"], help="default: dacerf (with --load: the saved model's)")
+    parser.add_argument("--algo", choices=list(ALGORITHMS), help="default: dacerf (with --load: the saved model's)")
     parser.add_argument("--timesteps", type=int, default=20_000, help="training steps per scenario (more steps with --load)")
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument(
@@ -130,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the paper's training hyper-parameters (sb3_dacerf.dacerf.PAPER_HYPERPARAMETERS: lr 1e-4, batch 512, RAD, "
         "tau 0.001, no added exploration noise, 200 transitions per gradient step over all --n-envs envs unless "
-        "--steps-per-gradient says otherwise; SAC gets the same lr, batch, tau and data regime) instead of the "
+        "--steps-per-gradient says otherwise; DACER, DSAC and SAC get the same lr, batch, tau and data regime) instead of the "
         "constructor defaults",
     )
     parser.add_argument("--n-envs", type=int, default=1, help="parallel training envs (SubprocVecEnv when > 1)")
@@ -246,7 +256,7 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
     if args.demonstration_targets and (args.demonstration_fraction is None or args.algo not in (None, "dacerf")):
         parser.error(
             "--demonstration-targets is DACERF's treatment of the demonstrations kept apart by --demonstration-fraction: "
-            "pass --demonstration-fraction too, and leave out --algo sac"
+            f"pass --demonstration-fraction too, and train DACERF (got --algo {args.algo or 'dacerf'})"
         )
     if args.steps_per_gradient is not None:
         try:
@@ -266,7 +276,7 @@ def algorithm_kwargs(args: argparse.Namespace) -> dict:
     values with ``--paper``, and what the other options ask for."""
     kwargs: dict = {}
     if args.paper:
-        # what SAC takes of the paper's settings: its optimiser step, batch, target update and data regime
+        # what DACER, DSAC and SAC take of the paper's settings: the optimiser step, batch, target update and data regime
         shared = ("learning_rate", "batch_size", "tau", "train_freq", "gradient_steps")
         kwargs = {k: v for k, v in PAPER_HYPERPARAMETERS.items() if args.algo == "dacerf" or k in shared}
         # the paper's 200 transitions per gradient step, over all the --n-envs environments

@@ -349,7 +349,7 @@ def test_train_with_demonstrations(tmp_path, capsys):
     assert "pass a share in [0, 1], together with --demonstrations N" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         train.main([*args, "--demonstration-targets", "actions"])  # a SAC model, no --demonstration-fraction
-    assert "pass --demonstration-fraction too, and leave out --algo sac" in capsys.readouterr().err
+    assert "pass --demonstration-fraction too, and train DACERF (got --algo sac)" in capsys.readouterr().err
     # --demonstrator junction: the intersection's gap-accepting driver gives them
     train.main([*args, "--demonstrator", "junction", "--save", save, "--save-replay-buffer"])
     model = SAC.load(save + "_intersection.zip")
@@ -445,9 +445,7 @@ def test_export_writes_the_files_evaluate_driving_reads(checkpoint, exported, tm
 
 def test_export_errors_name_the_problem(checkpoint, tmp_path):
     import gymnasium as gym
-    from stable_baselines3 import SAC
-
-    from sb3_dacerf import DACER
+    from stable_baselines3 import SAC, TD3
 
     export = load_example("export_driver", BENCHMARKS)
     folder = checkpoint[0]
@@ -470,11 +468,13 @@ def test_export_errors_name_the_problem(checkpoint, tmp_path):
     learning_curves.save_checkpoint(model, pendulum, [], 0.0)
     with pytest.raises(SystemExit, match=r"a run of 'Pendulum-v1', not a driving scenario"):
         export.main([str(pendulum), str(tmp_path / "model")])
-    dacer = learning_curves.checkpoint_dir(tmp_path, "DACERF-Multilane-v0", "dacer", 0)
+    td3 = learning_curves.checkpoint_dir(tmp_path, "DACERF-Multilane-v0", "td3", 0)
     env = gym.make("DACERF-Multilane-v0", config=SHORT)
-    learning_curves.save_checkpoint(DACER("MlpPolicy", env, buffer_size=100, policy_kwargs=dict(net_arch=[8])), dacer, [], 0.0)
-    with pytest.raises(SystemExit, match=r"is a dacer run: evaluate_driving.py loads dacerf and sac models only"):
-        export.main([str(dacer), str(tmp_path / "model")])
+    learning_curves.save_checkpoint(TD3("MlpPolicy", env, buffer_size=100, policy_kwargs=dict(net_arch=[8])), td3, [], 0.0)
+    with pytest.raises(SystemExit, match=r"is a td3 run: evaluate_driving.py loads dacerf, dacer, dsac and sac models only"):
+        export.main([str(td3), str(tmp_path / "model")])
+    with pytest.raises(SystemExit):  # argparse: an algorithm it does not know
+        export.main([str(td3), str(tmp_path / "model"), "--algo", "td3"])
 
 
 def test_render_a_trained_driver(exported, tmp_path, capsys):
@@ -540,7 +540,7 @@ def test_export_leaves_out_training_only_config(tmp_path, capsys):
     assert "training-only config key(s) ['reference_start_probability'] are left out" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("algo", ["dacerf", "sac"])
+@pytest.mark.parametrize("algo", ["dacerf", "dacer", "dsac", "sac"])
 def test_paper_settings_carry_the_papers_data_regime_over_all_envs(algo):
     """--paper: the paper's 200 transitions per gradient step, counted over all --n-envs envs; --steps-per-gradient wins."""
     train = load_example("train_driving")
@@ -551,3 +551,105 @@ def test_paper_settings_carry_the_papers_data_regime_over_all_envs(algo):
     assert ("flow_matching_weights" in kwargs) == (algo == "dacerf")
     kwargs = train.algorithm_kwargs(parser.parse_args(["--algo", algo, "--paper", "--steps-per-gradient", "8"]))
     assert (kwargs["train_freq"], kwargs["gradient_steps"]) == (8, 1)
+
+
+@pytest.mark.parametrize("algo", ["dacer", "dsac"])
+def test_dacer_and_dsac_drivers_train_export_and_evaluate_deterministically(algo, tmp_path, capsys):
+    """
+    A DACER or DSAC driver, trained by train_driving.py --save and as a learning_curves checkpoint exported by
+    export_driver.py, loads with its own class and drives with deterministic actions, as DACERF and SAC drivers do.
+    """
+    import torch
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    torch.set_num_threads(1)
+    train = load_example("train_driving")
+    evaluate = load_example("evaluate_driving")
+    export = load_example("export_driver", BENCHMARKS)
+    learning_curves = load_example("learning_curves", BENCHMARKS)
+    algo_class, name = evaluate.ALGORITHMS[algo], algo.upper()
+
+    # train_driving.py --algo X --save
+    save = str(tmp_path / algo)
+    args = ["--env", "multilane", "--algo", algo, "--timesteps", "40", "--learning-starts", "20", "--batch-size", "16"]
+    train.main([*args, "--config", json.dumps(SHORT), "--vec-normalize", "--save", save, "--eval-episodes", "1"])
+    assert f"DACERF-Multilane-v0 (normal), {algo}, training 40 steps" in capsys.readouterr().out
+    trained = save + "_multilane"
+    with open(trained + ".json") as file:
+        assert json.load(file)["algo"] == algo
+    results = evaluate.main([trained, "--episodes", "1"])
+    assert f"{name} from {trained}.zip, observations normalised" in capsys.readouterr().out
+    assert np.isfinite(results["tar"])
+    driver = evaluate.load_driver(trained)
+    assert type(driver.model) is algo_class
+    obs, _ = driver.env.reset(seed=10_000)
+    action = driver.act(obs)
+    np.testing.assert_array_equal(driver.act(obs), action)  # deterministic: the same action every time
+    expected = driver.model.predict(driver.vec_normalize.normalize_obs(obs), deterministic=True)[0]
+    np.testing.assert_array_equal(action, expected)
+    assert not np.array_equal(driver.model.predict(driver.vec_normalize.normalize_obs(obs), deterministic=False)[0], action)
+
+    # another algorithm's class is refused with the file's policy named
+    with pytest.raises(
+        SystemExit, match=rf"cannot load .* as SAC \(it holds a {name}Policy\): check --algo \(dacerf, dacer, dsac or sac\)"
+    ):
+        evaluate.main([trained, "--algo", "sac"])
+    other = "dsac" if algo == "dacer" else "dacer"
+    with pytest.raises(SystemExit, match=rf"cannot load .* as {other.upper()} .*holds a {algo.upper()} model"):
+        evaluate.main([trained, "--algo", other])
+    # without metadata, the algorithm is read from the saved policy
+    os.remove(trained + ".json")
+    assert type(evaluate.load_driver(trained, scenario="multilane").model) is algo_class
+
+    # a learning_curves checkpoint of the variant of that name, exported and evaluated
+    env = VecNormalize(DummyVecEnv([lambda: gym.make("DACERF-Multilane-v0", config=SHORT)]), norm_reward=False)
+    model = algo_class("MlpPolicy", env, learning_starts=20, batch_size=16, buffer_size=1_000, seed=0)
+    model.learn(40)
+    folder = learning_curves.checkpoint_dir(tmp_path / "results", "DACERF-Multilane-v0", algo, 0)
+    learning_curves.save_checkpoint(model, folder, [], 1.0)
+    stem = str(tmp_path / f"{algo}_multilane")
+    export.main([str(folder), stem])
+    assert f"{name} at 40 steps from {folder}" in capsys.readouterr().out
+    with open(stem + ".json") as file:
+        assert json.load(file) == {"env_id": "DACERF-Multilane-v0", "density": "normal", "config": SHORT, "algo": algo}
+    driver = evaluate.load_driver(stem)
+    assert type(driver.model) is algo_class and not driver.vec_normalize.training
+    env.training = False
+    observations = np.random.default_rng(0).normal(size=(4, *model.observation_space.shape)).astype(np.float32)
+    np.testing.assert_allclose(
+        np.stack([driver.act(o) for o in observations]),
+        model.predict(env.normalize_obs(observations), deterministic=True)[0],
+        rtol=0,
+        atol=1e-6,
+    )
+    results = evaluate.main([stem, "--episodes", "1"])
+    assert f"{name} from {stem}.zip" in capsys.readouterr().out and np.isfinite(results["tar"])
+
+
+def test_an_unknown_algorithm_is_refused_with_the_known_ones(trained, tmp_path, capsys):
+    evaluate = load_example("evaluate_driving")
+    train = load_example("train_driving")
+    render = load_example("render_driving")
+    known = "dacerf, dacer, dsac and sac"
+    # in the metadata beside a model
+    for suffix in (".zip", "_vecnormalize.pkl"):
+        with open(trained + suffix, "rb") as source, open(str(tmp_path / "driver") + suffix, "wb") as copy:
+            copy.write(source.read())
+    with open(tmp_path / "driver.json", "w") as file:
+        json.dump({"env_id": "DACERF-Multilane-v0", "density": "normal", "config": SHORT, "algo": "td3"}, file)
+    with pytest.raises(
+        SystemExit, match=rf"'td3' \(from '.*driver.json'\) is not an algorithm the driving examples load: they load {known}"
+    ):
+        evaluate.main([str(tmp_path / "driver"), "--episodes", "1"])
+    with pytest.raises(SystemExit, match=r"'ppo' \(from --algo\) is not an algorithm"):
+        evaluate.load_algorithm("ppo")
+    # on the command line: argparse names the choices
+    for main, args in (
+        (evaluate.main, [trained, "--algo", "td3"]),
+        (train.main, ["--algo", "td3"]),
+        (render.main, ["--model", trained, "--algo", "td3"]),
+    ):
+        with pytest.raises(SystemExit):
+            main(args)
+        err = capsys.readouterr().err
+        assert "--algo: invalid choice: 'td3'" in err and all(name in err for name in ("dacerf", "dacer", "dsac", "sac"))
