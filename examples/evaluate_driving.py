@@ -170,8 +170,9 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
     :param n_episodes: number of episodes
     :param seed: seed of the first episode, the next ones use the following seeds
     :return: TAR and its spread, arrival / collision / off-road rates, mean episode length, and the mean absolute
-        distance to the reference path [m] and speed error [m/s] over all steps; at the intersection also
-        ``by_route``: episodes and rates for each route drawn (straight, left, right, U-turn)
+        distance to the reference path [m] and speed error [m/s] over all steps; ``by_outcome``: episodes, TAR and
+        mean length of the episodes that ended each way (arrival, collision, off road, time limit); at the
+        intersection also ``by_route``: episodes and rates for each route drawn (straight, left, right, U-turn)
     """
     returns, outcomes, lengths, routes = [], [], [], []
     lateral_errors, speed_errors = [], []  # per step, over all episodes
@@ -202,6 +203,18 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
         "lateral_error": float(np.mean(lateral_errors)),
         "speed_error": float(np.mean(speed_errors)),
     }
+    # What each way of ending an episode scores: the TAR mixes how well the arriving episodes track their reference
+    # with how often and how early the others end
+    ends = np.array(["arrival" if a else "collision" if c else "off road" if o else "time limit" for a, c, o in outcomes])
+    results["by_outcome"] = {
+        end: {
+            "episodes": int((ends == end).sum()),
+            "tar": float(np.mean(np.asarray(returns)[ends == end])),
+            "episode_length": float(np.mean(np.asarray(lengths)[ends == end])),
+        }
+        for end in ("arrival", "collision", "off road", "time limit")
+        if (ends == end).any()
+    }
     if any(route is not None for route in routes):
         results["by_route"] = {}
         for route in sorted(set(routes), key=str):
@@ -212,15 +225,23 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
 
 def format_results(env_id: str, results: dict[str, Any], n_episodes: int) -> str:
     return (
-        f"{env_id}: over {n_episodes} episodes TAR {results['tar']:.1f} +/- {results['tar_std']:.1f}, "
-        f"arrival rate {results['arrival_rate']:.0%}, collision rate {results['collision_rate']:.0%}, "
-        f"off-road rate {results['off_road_rate']:.0%}, mean length {results['episode_length']:.0f} steps, "
-        f"mean distance to the reference path {results['lateral_error']:.2f} m, "
-        f"mean speed error {results['speed_error']:.2f} m/s"
-    ) + "".join(
-        f"\n  {route}: {rates['episodes']} episodes, arrival {rates['arrival_rate']:.0%}, "
-        f"collision {rates['collision_rate']:.0%}, off-road {rates['off_road_rate']:.0%}"
-        for route, rates in results.get("by_route", {}).items()
+        (
+            f"{env_id}: over {n_episodes} episodes TAR {results['tar']:.1f} +/- {results['tar_std']:.1f}, "
+            f"arrival rate {results['arrival_rate']:.0%}, collision rate {results['collision_rate']:.0%}, "
+            f"off-road rate {results['off_road_rate']:.0%}, mean length {results['episode_length']:.0f} steps, "
+            f"mean distance to the reference path {results['lateral_error']:.2f} m, "
+            f"mean speed error {results['speed_error']:.2f} m/s"
+        )
+        + "\n  TAR by outcome: "
+        + ", ".join(
+            f"{end} {part['tar']:.0f} ({part['episodes']} episodes, {part['episode_length']:.0f} steps)"
+            for end, part in results["by_outcome"].items()
+        )
+        + "".join(
+            f"\n  {route}: {rates['episodes']} episodes, arrival {rates['arrival_rate']:.0%}, "
+            f"collision {rates['collision_rate']:.0%}, off-road {rates['off_road_rate']:.0%}"
+            for route, rates in results.get("by_route", {}).items()
+        )
     )
 
 

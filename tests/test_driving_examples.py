@@ -62,7 +62,7 @@ def test_train_prints_progress_and_saves_model_stats_and_metadata(trained_sac):
     # progress every 100 steps: episodes so far and their outcome rates (3 s episodes: several per 100 steps)
     progress = [line for line in out.splitlines() if "/200 steps" in line]
     assert len(progress) == 2 and all("episodes; last" in line and "off-road" in line for line in progress), out
-    assert "off-road rate" in out.splitlines()[-1]
+    assert "off-road rate" in out.splitlines()[-2] and out.splitlines()[-1].startswith("  TAR by outcome: ")
     for suffix in (".zip", ".json", "_vecnormalize.pkl"):
         assert os.path.isfile(trained_sac + suffix), suffix
     with open(trained_sac + ".json") as file:
@@ -84,6 +84,7 @@ def test_evaluate_prints_the_paper_metrics(trained, capsys):
         "episode_length",
         "lateral_error",
         "speed_error",
+        "by_outcome",
     }
     assert 1 <= results["episode_length"] <= 30 and np.isfinite(results["tar"])
     assert results["lateral_error"] >= 0 and results["speed_error"] >= 0 and "distance to the reference path" in out
@@ -153,6 +154,16 @@ def test_evaluate_breaks_the_intersection_down_by_route(capsys):
         assert weighted == pytest.approx(results[key])
     out = capsys.readouterr().out
     assert all(f"  {route}: {rates['episodes']} episodes, arrival" in out for route, rates in by_route.items())
+    # the episodes split by how they ended: counts and TAR add up to the whole, and the rates agree with the counts
+    by_outcome = results["by_outcome"]
+    assert set(by_outcome) <= {"arrival", "collision", "off road", "time limit"}
+    assert sum(part["episodes"] for part in by_outcome.values()) == 4
+    assert sum(part["episodes"] * part["tar"] for part in by_outcome.values()) / 4 == pytest.approx(results["tar"])
+    assert by_outcome.get("arrival", {"episodes": 0})["episodes"] == round(4 * results["arrival_rate"])
+    assert sum(part["episodes"] * part["episode_length"] for part in by_outcome.values()) / 4 == pytest.approx(
+        results["episode_length"]
+    )
+    assert "  TAR by outcome: " in out
 
 
 def test_shipped_drivers_load_and_drive(capsys):
