@@ -206,14 +206,15 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
     # What each way of ending an episode scores: the TAR mixes how well the arriving episodes track their reference
     # with how often and how early the others end
     ends = np.array(["arrival" if a else "collision" if c else "off road" if o else "time limit" for a, c, o in outcomes])
+    returns_array, lengths_array = np.asarray(returns), np.asarray(lengths)
     results["by_outcome"] = {
         end: {
-            "episodes": int((ends == end).sum()),
-            "tar": float(np.mean(np.asarray(returns)[ends == end])),
-            "episode_length": float(np.mean(np.asarray(lengths)[ends == end])),
+            "episodes": int(episodes.sum()),
+            "tar": float(returns_array[episodes].mean()),
+            "episode_length": float(lengths_array[episodes].mean()),
         }
         for end in ("arrival", "collision", "off road", "time limit")
-        if (ends == end).any()
+        if (episodes := ends == end).any()
     }
     if any(route is not None for route in routes):
         results["by_route"] = {}
@@ -268,11 +269,9 @@ def saved_algorithm(model_path: str | os.PathLike) -> str | None:
 
     :param model_path: the model .zip
     """
-    from sb3_dacerf.common.persistence import saved_policy_class
+    from sb3_dacerf.common.persistence import algorithm_name, saved_policy_class
 
-    policy_class = saved_policy_class(model_path)
-    parts = policy_class.__module__.split(".") if policy_class is not None else []
-    return parts[1] if len(parts) >= 3 and parts[0] in ("sb3_dacerf", "stable_baselines3", "sb3_contrib") else None
+    return algorithm_name(saved_policy_class(model_path))
 
 
 def load_model(paths: dict[str, str], algo: str | None = None, metadata_algo: str | None = None) -> OffPolicyAlgorithm:

@@ -128,9 +128,19 @@ def saved_policy_class(path: Any) -> type | None:
         return None
 
 
+def algorithm_name(policy_class: type | None) -> str | None:
+    """
+    The lower-case name of the algorithm a policy class belongs to: ``sac`` for
+    ``stable_baselines3.sac.policies.SACPolicy``, ``tqc`` for sb3_contrib's, ``dacer`` for ours; ``None`` for a policy
+    of another package (or ``None``, a class :func:`saved_policy_class` could not read).
+    """
+    parts = policy_class.__module__.split(".") if isinstance(policy_class, type) else []
+    if len(parts) >= 3 and parts[0] in ("stable_baselines3", "sb3_contrib", "sb3_dacerf") and parts[-1] == "policies":
+        return parts[1]
+    return None
+
+
 def _algorithm_of(policy_class: type) -> str:
     """``SAC`` for ``stable_baselines3.sac.policies.SACPolicy``, ``TQC`` for sb3_contrib's, ``DACER`` for ours."""
-    parts = policy_class.__module__.split(".")
-    if len(parts) >= 3 and parts[0] in ("stable_baselines3", "sb3_contrib", "sb3_dacerf") and parts[-1] == "policies":
-        return parts[1].upper()
-    return f"another algorithm's (whose policy is {policy_class.__name__})"
+    name = algorithm_name(policy_class)
+    return name.upper() if name else f"another algorithm's (whose policy is {policy_class.__name__})"
