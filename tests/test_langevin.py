@@ -168,3 +168,26 @@ def test_min_q_gradient_matches_autograd_through_min(activation_fn, n_critics, n
         th.manual_seed(4)
         assert th.allclose(targets, langevin_targets(autograd_action_gradient(min_q), actions, 20, 0.03, 0.01), atol=1e-5)
     assert all(param.grad is None for param in critic.parameters())
+
+
+@pytest.mark.parametrize("case", ["ties", "one_critic_lowest"])
+def test_min_q_gradient_on_ties_and_when_one_critic_is_always_lowest(case):
+    """Per sample the written-out gradient is the first smallest critic's, as autograd through th.min: with equal
+    critics (every sample a tie) that is the first critic's, and a critic that is lowest everywhere leaves the other's
+    group empty."""
+    th.manual_seed(5)
+    critic = make_critic(nn.ReLU, n_critics=2, layer_norm=True)
+    output = critic.ensemble[-1]
+    with th.no_grad():
+        if case == "ties":
+            for param in critic.ensemble.parameters():
+                param[1].copy_(param[0])
+        else:
+            output.bias[1] = output.bias[0] - 1e3
+    observations, actions = th.randn((32, 5)), th.rand((32, 3)) * 2 - 1
+    lowest = 1 if case == "one_critic_lowest" else 0
+    gradient = MinQActionGradient(critic, observations)
+    assert gradient.written_out
+    with frozen(critic.parameters()):
+        expected = autograd_action_gradient(lambda a: critic.q_values(observations, a)[lowest])(actions)
+        assert th.allclose(gradient(actions), expected, atol=1e-6)

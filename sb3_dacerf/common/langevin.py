@@ -91,11 +91,14 @@ def _layer_norm_forward(norm: EnsembleLayerNorm, z: th.Tensor) -> tuple[th.Tenso
     return th.addcmul(norm.bias.unsqueeze(1), normalised, norm.weight.unsqueeze(1)), (z, mean, inv_std)
 
 
-def _layer_norm_backward(norm: EnsembleLayerNorm, grad: th.Tensor, cache: tuple[th.Tensor, th.Tensor, th.Tensor]) -> th.Tensor:
-    """dQ/dz from dQ/dy of ``y = LayerNorm(z)`` (per-member affine), with autograd's own kernel."""
-    z, mean, inv_std = cache
+def _layer_norm_backward(
+    norm: EnsembleLayerNorm, grad: th.Tensor, cache: tuple[th.Tensor, th.Tensor, th.Tensor], member: int, rows: th.Tensor
+) -> th.Tensor:
+    """dQ/dz from dQ/dy of ``y = LayerNorm(z)`` for one ensemble member at the samples ``rows``, with autograd's own
+    kernel."""
+    z, mean, inv_std = (tensor[member].index_select(0, rows) for tensor in cache)
     return th.ops.aten.native_layer_norm_backward(
-        grad * norm.weight.unsqueeze(1), z, (norm.num_features,), mean, inv_std, None, None, [True, False, False]
+        grad * norm.weight[member], z, (norm.num_features,), mean, inv_std, None, None, [True, False, False]
     )[0]
 
 
@@ -109,11 +112,11 @@ class MinQActionGradient:
     with ReLU, LeakyReLU or Tanh between them, optionally a ``LayerNorm`` after each hidden layer as in
     :class:`~sb3_dacerf.common.ensemble.LayerNormCritic`, or a batch renormalisation in running-statistics mode before
     each layer as in :class:`~sb3_dacerf.common.ensemble.BatchRenormCritic`, folded into that layer) the gradient is
-    written out (forward pass, then the chain rule through the same weights, all the critics in one batched product
-    per layer) without building an autograd graph: the same numbers as autograd, faster. Other critics (other
-    activations, an SB3 ``ContinuousCritic``) fall back to autograd on the cached
-    features. Per sample, the gradient is that of the critic with the smallest Q (as autograd routes it through
-    ``min``).
+    written out without building an autograd graph: the forward pass runs all the critics in one batched product per
+    layer, and the chain rule then goes back through the weights of the critic with the smallest Q only, per sample
+    (as autograd routes the gradient through ``min``), so each backward product covers the batch once. The same
+    numbers as autograd, faster. Other critics (other activations, an SB3 ``ContinuousCritic``) fall back to autograd
+    on the cached features.
 
     The first call also keeps ``min_j Q_j`` at the actions it was given in :attr:`start_min_q`: the Langevin loop's
     first call is at its starting actions, whose Q-values are then known without another pass.
@@ -151,22 +154,29 @@ class MinQActionGradient:
             return gradient
         with th.no_grad():
             q_values, saved = self._forward(actions)
-            n_members, batch = q_values.shape[0], actions.shape[0]
-            # Backward pass: from the output layer down to the action input
-            gradient = self.output_weight.transpose(1, 2).expand(n_members, batch, -1)
-            for index in range(len(self.blocks) - 1, -1, -1):
-                weight, _, norm, activation = self.blocks[index]
-                z, norm_cache = saved[index]
-                gradient = _ACTIVATION_BACKWARDS[type(activation)](activation, gradient, z)
-                if norm is not None and norm_cache is not None:  # both or neither
-                    gradient = _layer_norm_backward(norm, gradient, norm_cache)
-                gradient = th.bmm(gradient, (self.action_weight if index == 0 else weight).transpose(1, 2))
             self._keep_start(q_values.min(dim=0).values)
-            # The gradient of the smallest Q, per sample (the first one on ties, as autograd through th.min)
-            if n_members == 2:
-                return th.where(q_values[0] <= q_values[1], gradient[0], gradient[1])
-            smallest = q_values.argmin(dim=0, keepdim=True)  # (1, batch, 1)
-            return gradient.gather(0, smallest.expand(1, *gradient.shape[1:])).squeeze(0)
+            # Per sample, only the critic with the smallest Q is differentiated (the first one on ties, as autograd
+            # routes the gradient through th.min): the backward pass runs once per critic on its own samples, so
+            # each layer's product covers the batch once instead of once per critic
+            smallest = q_values.squeeze(2).argmin(dim=0)
+            gradient = th.empty_like(actions)
+            for member in range(q_values.shape[0]):
+                rows = (smallest == member).nonzero().squeeze(1)
+                if rows.numel() > 0:
+                    gradient.index_copy_(0, rows, self._member_backward(member, rows, saved))
+            return gradient
+
+    def _member_backward(self, member: int, rows: th.Tensor, saved: list[tuple[th.Tensor, Any]]) -> th.Tensor:
+        """``∇_a Q_member`` at the samples ``rows``, from the forward pass's ``saved`` pre-activations."""
+        gradient = self.output_weight[member].t().expand(rows.numel(), -1)
+        for index in range(len(self.blocks) - 1, -1, -1):
+            weight, _, norm, activation = self.blocks[index]
+            z, norm_cache = saved[index]
+            gradient = _ACTIVATION_BACKWARDS[type(activation)](activation, gradient, z[member].index_select(0, rows))
+            if norm is not None and norm_cache is not None:  # both or neither
+                gradient = _layer_norm_backward(norm, gradient, norm_cache, member, rows)
+            gradient = gradient @ (self.action_weight if index == 0 else weight)[member].t()
+        return gradient
 
     def min_q(self, actions: th.Tensor) -> th.Tensor:
         """``min_j Q_j(s, a)`` at the fixed states, ``(batch, 1)``, without gradient (one forward pass)."""
