@@ -154,11 +154,12 @@ class MinQActionGradient:
             return gradient
         with th.no_grad():
             q_values, saved = self._forward(actions)
-            self._keep_start(q_values.min(dim=0).values)
             # Per sample, only the critic with the smallest Q is differentiated (the first one on ties, as autograd
             # routes the gradient through th.min): the backward pass runs once per critic on its own samples, so
             # each layer's product covers the batch once instead of once per critic
-            smallest = q_values.squeeze(2).argmin(dim=0)
+            min_q, smallest = q_values.min(dim=0)
+            self._keep_start(min_q)
+            smallest = smallest.squeeze(1)
             gradient = th.empty_like(actions)
             for member in range(q_values.shape[0]):
                 rows = (smallest == member).nonzero().squeeze(1)
