@@ -1,5 +1,5 @@
 """
-The collisions at each traffic density that braking does not avoid: a floor under any driver's collision rate.
+The collisions at each traffic density that braking does not avoid, and which of them a lane chosen in hindsight does.
 
 For each scenario and density it drives the same seeds twice: with the scripted driver
 (:class:`~sb3_dacerf.envs.driving.scripted.ScriptedDriver`), and with the same driver commanding the ego's
@@ -10,12 +10,12 @@ vehicle ahead is one that braking along the reference does not win (the traffic 
 evidence, not a proof). On the multi-lane highway it then searches, for each such episode, the lanes the ego could
 have taken instead: from step k (0, 5, ..., 55) on, follow lane L (any of them, its own included) braking at the limit
 or holding its speed (braking for a vehicle close ahead in that lane). An episode one of these completes without a
-collision is one a driver that knew the future could win; the others bound every driver. For the braking ego's
-collisions it prints where the
-other vehicle was (ahead of the ego's centre, or behind it / alongside), when the collision came, the closing speed
-at contact (the ego's speed along its heading minus the other's; with the ego's own speed, whether it ran into the
-other or stood while the other ran into it) and the other vehicle's hardest braking over the
-3 s before it, against the ego's limit (the traffic's IDM brakes at up to ``IDMVehicle.ACC_MAX``, 6 m/s²).
+collision is one a driver that knew the future could win; the others no driver of the search wins (a search, not a
+proof that no driver could). For the braking ego's collisions it prints where the other vehicle was (ahead of the
+ego's centre, or behind it / alongside), when the collision came, the closing speed at contact (the ego's speed along
+its heading minus the other's; with the ego's own speed, whether it ran into the other or stood while the other ran
+into it) and the other vehicle's hardest braking over the 3 s before it, against the ego's limit (the traffic's IDM
+brakes at up to ``IDMVehicle.ACC_MAX``, 6 m/s²).
 
 Usage::
 
