@@ -84,6 +84,22 @@ class LaneDriver(BrakingDriver):
         return action_type.command_action(desired, feedforward).astype(np.float32)
 
 
+def drive(env: gym.Env, driver: ScriptedDriver, seed: int, speeds: list[dict[int, float]] | None = None) -> dict:
+    """
+    One episode of ``driver`` from ``reset(seed=seed)``; its last ``info``.
+
+    :param speeds: if given, gets per step the speed of every vehicle on the road, by ``id``
+    """
+    obs, _ = env.reset(seed=seed)
+    done, info = False, {}
+    while not done:
+        obs, _, terminated, truncated, info = env.step(driver(obs))
+        done = terminated or truncated
+        if speeds is not None:
+            speeds.append({id(v): v.speed for v in env.unwrapped.road.vehicles})
+    return info
+
+
 def evasion(env: gym.Env, seed: int) -> tuple[int, int, bool] | None:
     """
     The first lane change (from step, lane, hold) of :class:`LaneDriver`'s search that completes the multi-lane
@@ -92,13 +108,7 @@ def evasion(env: gym.Env, seed: int) -> tuple[int, int, bool] | None:
     for from_step in range(0, 60, 5):
         for lane_id in range(env.unwrapped.config["lanes_count"]):
             for hold in (False, True):
-                driver = LaneDriver(env, lane_id, from_step, hold)
-                obs, _ = env.reset(seed=seed)
-                done, info = False, {}
-                while not done:
-                    obs, _, terminated, truncated, info = env.step(driver(obs))
-                    done = terminated or truncated
-                if info["is_success"]:
+                if drive(env, LaneDriver(env, lane_id, from_step, hold), seed)["is_success"]:
                     return from_step, lane_id, hold
     return None
 
@@ -107,7 +117,8 @@ def run(env_id: str, density: str, braking: bool, episodes: int, seed: int) -> d
     """
     Drive ``episodes`` episodes from ``seed`` on.
 
-    :return: arrival and collision rates, and one record per collision: ``ahead`` (the other vehicle's centre in
+    :return: arrival and collision rates, ``limit`` (the ego's strongest braking, m/s², positive), and one record per
+        collision: ``ahead`` (the other vehicle's centre in
         front of the ego's), ``time`` [s], ``ego_speed`` and ``closing_speed`` [m/s] and ``other_braking`` (its
         hardest deceleration over the last ``LOOKBACK`` seconds, m/s², positive)
     """
@@ -118,13 +129,8 @@ def run(env_id: str, density: str, braking: bool, episodes: int, seed: int) -> d
     window = round(LOOKBACK * frequency)
     arrivals, collisions, records = 0, 0, []
     for episode in range(episodes):
-        obs, _ = env.reset(seed=seed + episode)
-        speeds: list[dict[int, float]] = []  # per step: id of each traffic vehicle -> speed
-        done, info = False, {}
-        while not done:
-            obs, _, terminated, truncated, info = env.step(driver(obs))
-            done = terminated or truncated
-            speeds.append({id(v): v.speed for v in unwrapped.road.vehicles})
+        speeds: list[dict[int, float]] = []
+        info = drive(env, driver, seed + episode, speeds)
         arrivals += bool(info["is_success"])
         if not info["collision"]:
             continue
@@ -146,8 +152,9 @@ def run(env_id: str, density: str, braking: bool, episodes: int, seed: int) -> d
                 "other_braking": float(max(braking_rates.max(), 0.0)),
             }
         )
+    limit = -float(unwrapped.config["acceleration_range"][0])
     env.close()
-    return {"arrival_rate": arrivals / episodes, "collision_rate": collisions / episodes, "collisions": records}
+    return {"arrival_rate": arrivals / episodes, "collision_rate": collisions / episodes, "limit": limit, "collisions": records}
 
 
 def summary(records: list[dict[str, Any]], limit: float) -> str:
@@ -203,20 +210,19 @@ def main(argv: list[str] | None = None) -> None:
         for density in densities:
             scripted = run(env_id, density, False, args.episodes, args.seed)
             braking = run(env_id, density, True, args.episodes, args.seed)
-            env = gym.make(env_id, density=density)
-            limit = -float(env.unwrapped.config["acceleration_range"][0])
             collisions = braking["collisions"]
-            if name == "multilane" and collisions:
-                won = sum(evasion(env, r["seed"]) is not None for r in collisions)
-                searched = f"{won} of {len(collisions)} | {(len(collisions) - won) / args.episodes:.0%}"
-            elif name == "multilane":
-                searched = "— | 0%"
-            else:
-                searched = "— | —"
-            env.close()
+            searched = "— | —"  # the search changes lanes: multi-lane only
+            if name == "multilane":
+                won, won_cell = 0, "—"
+                if collisions:
+                    env = gym.make(env_id, density=density)
+                    won = sum(evasion(env, r["seed"]) is not None for r in collisions)
+                    env.close()
+                    won_cell = f"{won} of {len(collisions)}"
+                searched = f"{won_cell} | {(len(collisions) - won) / args.episodes:.0%}"
             print(
                 f"| {name} | {density} | {scripted['arrival_rate']:.0%}, {scripted['collision_rate']:.0%} | "
-                f"{braking['arrival_rate']:.0%}, {braking['collision_rate']:.0%} | {summary(collisions, limit)} | "
+                f"{braking['arrival_rate']:.0%}, {braking['collision_rate']:.0%} | {summary(collisions, braking['limit'])} | "
                 f"{searched} |",
                 flush=True,
             )
