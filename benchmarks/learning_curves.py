@@ -112,6 +112,17 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
+def checkout_commit() -> str:
+    """The commit of the code that trains (``<hash>+dirty`` when the checkout has uncommitted changes), for the run files."""
+    import subprocess
+
+    def git(*arguments: str) -> str:
+        return subprocess.run(["git", *arguments], cwd=_checkout.ROOT, capture_output=True, text=True).stdout.strip()
+
+    dirty = git("status", "--porcelain", "--untracked-files=no", "--", "sb3_dacerf", "benchmarks/learning_curves.py")
+    return (git("rev-parse", "--short", "HEAD") or "unknown") + ("+dirty" if dirty else "")
+
+
 def algorithm_class(name: str) -> type:
     import sb3_dacerf
 
@@ -218,6 +229,20 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
         folder.rename(old)
     tmp.rename(folder)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def recover_checkpoint(folder: Path) -> None:
+    """
+    Put back the checkpoint a kill during :func:`save_checkpoint`'s renames left aside: the new one if it was written
+    completely (its ``state.pkl`` is written last), otherwise the previous one.
+    """
+    if folder.exists():
+        return
+    tmp, old = folder.with_name(folder.name + ".tmp"), folder.with_name(folder.name + ".old")
+    for candidate in (tmp, old):
+        if (candidate / "state.pkl").exists():
+            candidate.rename(folder)
+            return
 
 
 def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, list[dict[str, Any]], float]:
@@ -383,6 +408,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
     folder = checkpoint_dir(out, job["env"], job["variant"], job["seed"])
     rows: list[dict[str, Any]] = []
     elapsed = 0.0
+    recover_checkpoint(folder)
     if job["checkpoint_freq"] and (folder / "state.pkl").exists():
         model, rows, elapsed = load_checkpoint(algorithm, folder, job["device"])
         check_regime(model, job, folder)
@@ -434,6 +460,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
                 action_spread=float(spread),
                 ent_coef=float(log_alpha.exp()) if log_alpha is not None else np.nan,
                 wall_seconds=time.perf_counter() - start,
+                commit=job["commit"],
             )
         )
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -743,8 +770,10 @@ def main() -> None:
         print(report(rows, args.env, out, args.x_axis))
         print(f"\nsaved {out / args.env.replace('/', '_')}.csv and {plot_name(args.env, args.x_axis)}")
         return
+    commit = checkout_commit()
     jobs = [
         dict(
+            commit=commit,
             env=args.env,
             variant=variant,
             seed=seed,

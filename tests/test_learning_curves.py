@@ -35,6 +35,7 @@ def job(out: Path, variant: str, timesteps: int, **overrides) -> dict:
         checkpoint_freq=100,
         learning_starts=50,
         vec_normalize=False,
+        commit="abc1234",
     )
     return {**settings, **overrides}
 
@@ -57,6 +58,19 @@ def test_resumed_run_matches_uninterrupted_run(tmp_path, learning_curves, varian
     # A finished run is read back, not trained again
     again = learning_curves.run_one(job(tmp_path / "resumed", variant, 300))
     assert [row["mean_return"] for row in again] == returns
+
+
+@pytest.mark.parametrize("left", ["old", "tmp"])
+def test_a_kill_between_the_renames_loses_no_checkpoint(tmp_path, learning_curves, left):
+    straight = learning_curves.run_one(job(tmp_path / "straight", "sac", 300))
+    assert {row["commit"] for row in straight} == {"abc1234"}
+    learning_curves.run_one(job(tmp_path / "resumed", "sac", 200))
+    folder = learning_curves.checkpoint_dir(tmp_path / "resumed", "Pendulum-v1", "sac", 3)
+    # save_checkpoint renames the checkpoint to .old, then the new one from .tmp: a kill in between leaves either
+    folder.rename(folder.with_name(f"{folder.name}.{left}"))
+    resumed = learning_curves.run_one(job(tmp_path / "resumed", "sac", 300))
+    assert [row["timesteps"] for row in resumed] == [100, 200, 300]
+    assert [row["mean_return"] for row in resumed] == [row["mean_return"] for row in straight]
 
 
 @pytest.mark.parametrize("normalize_reward", [False, True])
