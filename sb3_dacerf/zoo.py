@@ -8,6 +8,9 @@ With a database ``--storage`` (``postgresql://...``), ``-optimize`` studies get 
 by the next worker that starts a trial, instead of staying RUNNING forever; and workers started at the same moment
 on a new database no longer fail creating Optuna's tables.
 
+RL Zoo leaves PyTorch at one thread per core unless ``--num-threads`` is given; a command whose ``--algo`` is DACERF,
+DACER or DSAC gets one thread instead (see :func:`choose_threads`), unless it gives ``--num-threads``.
+
 RL Zoo's ``ParallelTrainCallback`` (``-params callback:"'rl_zoo3.callbacks.ParallelTrainCallback'"``), gradient
 steps in a thread while the environment steps, works with DACERF, DACER and DSAC as with SAC: see
 :class:`ParallelTraining`.
@@ -21,6 +24,7 @@ calls :func:`register` on ``rl_zoo3.utils``, ``rl_zoo3.hyperparams_opt``, ``rl_z
 This module is imported only together with RL Zoo: it imports torch, Stable-Baselines3, DACERF, DACER and DSAC.
 """
 
+import argparse
 import contextlib
 import copy
 import functools
@@ -32,19 +36,22 @@ import runpy
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 import optuna
+import torch as th
 import yaml
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import recursive_getattr
+from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dacerf import DACER, DACERF, DSAC
 from sb3_dacerf.common.policies import CRITICS as _POLICY_CRITICS
+from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 
 if TYPE_CHECKING:
     from rl_zoo3.callbacks import ParallelTrainCallback
@@ -331,6 +338,53 @@ def database_studies(interval: int) -> Iterator[None]:
         optuna.create_study = create_study
 
 
+#: The key of a YAML entry's ``normalize`` dict that chooses :class:`~sb3_dacerf.common.vec_normalize.MaskedVecNormalize`
+MASKED_KEY = "masked"
+
+
+def masked_normalization(normalize_kwargs: dict[str, Any]) -> bool:
+    """
+    Take ``masked`` out of RL Zoo's ``normalize`` arguments (a YAML entry's ``normalize: "dict(norm_obs=True,
+    norm_reward=False, masked=True)"``): whether the observations are normalised with
+    :class:`~sb3_dacerf.common.vec_normalize.MaskedVecNormalize`, whose empty vehicle rows stay zeros, instead of SB3's
+    ``VecNormalize``. The other arguments are both classes' arguments.
+
+    :param normalize_kwargs: RL Zoo's ``normalize_kwargs``, from which ``masked`` is removed
+    :return: whether ``masked=True`` was given
+    :raises ValueError: ``masked`` that is not ``True`` or ``False``, or ``masked=True`` with ``norm_obs=False``
+    """
+    masked = normalize_kwargs.pop(MASKED_KEY, False)
+    if not isinstance(masked, bool):
+        raise ValueError(f"normalize: {MASKED_KEY}={masked!r}: write {MASKED_KEY}=True (MaskedVecNormalize) or leave it out")
+    if masked and not normalize_kwargs.get("norm_obs", True):
+        raise ValueError(
+            f"normalize: {MASKED_KEY}=True normalises the observations' vehicle rows, but norm_obs=False turns observation "
+            f"normalisation off: drop norm_obs=False, or {MASKED_KEY}=True"
+        )
+    return masked
+
+
+def masked_rows(venv: VecEnv, env_id: str) -> tuple[int, int, int]:
+    """
+    The table of optional rows of a driving env's observation (``rows`` of
+    :class:`~sb3_dacerf.common.vec_normalize.MaskedVecNormalize`): its vehicle rows, from the env's config.
+
+    :param venv: the vectorised env that ``MaskedVecNormalize`` wraps
+    :param env_id: its id, for the error message
+    :raises ValueError: an env without the driving envs' config
+    """
+    from sb3_dacerf.envs.driving.common.observation import vehicle_rows  # (highway-env: the driving extra)
+
+    try:
+        config = venv.get_attr("config")[0]
+        return vehicle_rows(config)
+    except (AttributeError, KeyError, TypeError) as error:
+        raise ValueError(
+            f"normalize: {MASKED_KEY}=True normalises the vehicle rows of a driving env's observation (DACERF-Multilane-v0, "
+            f"DACERF-Intersection-v0), but {env_id} has no driving config ({error!r}): drop {MASKED_KEY}=True for it"
+        ) from error
+
+
 _PATCHED_MARK = "_sb3_dacerf_patched"
 
 
@@ -340,12 +394,32 @@ def _patch_experiment_manager(cls: "type[ExperimentManager]") -> None:
     init = cls.__init__
     init_signature = inspect.signature(init)
     optimize = cls.hyperparameters_optimization
+    preprocess_normalization, maybe_normalize = cls._preprocess_normalization, cls._maybe_normalize
 
     @functools.wraps(init)
     def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
         init(self, *args, **kwargs)
         if init_signature.bind(self, *args, **kwargs).arguments.get("config") is None:
             self.config = default_config(self.algo, self.env_name.gym_id) or self.config
+
+    @functools.wraps(preprocess_normalization)
+    def _preprocess_normalization(self: Any, hyperparams: dict[str, Any]) -> dict[str, Any]:
+        hyperparams = preprocess_normalization(self, hyperparams)
+        self.normalize_kwargs = dict(self.normalize_kwargs)  # RL Zoo's may be the entry's own dict, which it saves
+        self._sb3_dacerf_masked = masked_normalization(self.normalize_kwargs)
+        return hyperparams
+
+    @functools.wraps(maybe_normalize)
+    def _maybe_normalize(self: Any, env: VecEnv, eval_env: bool) -> VecEnv:
+        saved = os.path.join(os.path.dirname(self.trained_agent), self.env_name, "vecnormalize.pkl")
+        if not getattr(self, "_sb3_dacerf_masked", False) or os.path.exists(saved):
+            return maybe_normalize(self, env, eval_env)  # (saved statistics load as the class that saved them)
+        kwargs = self.normalize_kwargs.copy()
+        if eval_env:  # as RL Zoo's evaluation env: statistics copied from the training env, rewards as they are
+            kwargs.update(norm_reward=False, training=False)
+        if self.verbose > 0:
+            print(f"Normalization activated: MaskedVecNormalize {kwargs}")
+        return MaskedVecNormalize(env, rows=masked_rows(env, self.env_name.gym_id), **kwargs)
 
     @functools.wraps(optimize)
     def hyperparameters_optimization(self: Any) -> None:
@@ -364,6 +438,8 @@ def _patch_experiment_manager(cls: "type[ExperimentManager]") -> None:
 
     # Patching RL Zoo's class is what this function is for
     cls.__init__ = __init__  # type: ignore[method-assign]
+    cls._preprocess_normalization = _preprocess_normalization  # type: ignore[method-assign]
+    cls._maybe_normalize = _maybe_normalize  # type: ignore[method-assign]
     cls.hyperparameters_optimization = hyperparameters_optimization  # type: ignore[method-assign]
     setattr(cls, _PATCHED_MARK, True)
 
@@ -542,16 +618,39 @@ def _patch_parallel_train_callback(cls: "type[ParallelTrainCallback]") -> None:
     setattr(cls, _PATCHED_MARK, True)
 
 
+def choose_threads(argv: Sequence[str]) -> None:
+    """
+    Give PyTorch one thread when the RL Zoo command line ``argv`` trains or runs one of :data:`ALGORITHMS`
+    (``--algo``) and does not choose the number itself (``--num-threads``, which RL Zoo then applies). RL Zoo leaves
+    PyTorch at its default of one thread per core, and the networks of these algorithms are too small to gain
+    from more: on cores that other processes also use, the threads wait for each other.
+
+    :param argv: the script's arguments, as RL Zoo's parser reads them (abbreviations included)
+    """
+    parser = argparse.ArgumentParser(add_help=False, exit_on_error=False)
+    parser.add_argument("--algo")
+    parser.add_argument("--num-threads")
+    try:
+        known, _ = parser.parse_known_args(argv)
+    except argparse.ArgumentError:  # RL Zoo's own parser reports it
+        return
+    if known.algo in ALGORITHMS and known.num_threads is None:
+        th.set_num_threads(1)
+
+
 def register(module: ModuleType) -> None:
     """
     Add DACERF, DACER and DSAC to one RL Zoo module (idempotent): ``rl_zoo3.utils`` (``ALGOS``),
     ``rl_zoo3.hyperparams_opt`` (Optuna samplers and converters), ``rl_zoo3.exp_manager`` (default YAML files) or
     ``rl_zoo3.callbacks`` (``ParallelTrainCallback``, see :class:`ParallelTraining`); other modules are left alone.
+    Registering ``rl_zoo3.utils``, which every RL Zoo script imports before it parses its arguments, also chooses
+    PyTorch's number of threads from the command line (:func:`choose_threads`).
 
     :param module: the RL Zoo module, already executed
     """
     if module.__name__ == "rl_zoo3.utils":
         module.ALGOS.update(ALGORITHMS)
+        choose_threads(sys.argv[1:])
     elif module.__name__ == "rl_zoo3.hyperparams_opt":
         for algo, sampler in SAMPLERS.items():
             module.HYPERPARAMS_SAMPLER.setdefault(algo, sampler)

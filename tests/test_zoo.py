@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 import pytest
 import torch as th
 import yaml
@@ -28,10 +29,13 @@ from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS  # noqa: E402
 from sb3_dacerf.envs.dmc import DMC_ENV_IDS  # noqa: E402
 from sb3_dacerf.zoo import (  # noqa: E402
     HYPERPARAMS_DIR,
+    choose_threads,
     convert_dacer_params,
     convert_dacerf_params,
     convert_dsac_params,
     default_config,
+    masked_normalization,
+    masked_rows,
     register,
     sample_dacer_params,
     sample_dacerf_params,
@@ -74,11 +78,14 @@ TINY_DSAC = ["learning_starts:50", "batch_size:32", "policy_kwargs:dict(net_arch
 
 
 def zoo_command(script: str, *args: str) -> tuple[list[str], dict[str, str]]:
-    """Command line and environment that run the RL Zoo script ``rl_zoo3.<script>`` with DACERF registered."""
+    """
+    Command line and environment that run the RL Zoo script ``rl_zoo3.<script>`` with DACERF registered, and this
+    checkout's package (wherever ``pip install -e`` points).
+    """
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     if HOOK_INSTALLED:
-        return [sys.executable, "-m", f"rl_zoo3.{script}", *args], dict(os.environ)
-    python_path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
-    return [sys.executable, "-m", "sb3_dacerf.zoo", script, *args], {**os.environ, "PYTHONPATH": python_path}
+        return [sys.executable, "-m", f"rl_zoo3.{script}", *args], env
+    return [sys.executable, "-m", "sb3_dacerf.zoo", script, *args], env
 
 
 def zoo(script: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -116,6 +123,41 @@ def test_register_is_idempotent():
     assert {"dacerf", "dacer"} <= set(rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER)
     assert rl_zoo3.exp_manager.ExperimentManager._sb3_dacerf_patched
     assert rl_zoo3.callbacks.ParallelTrainCallback._sb3_dacerf_patched
+
+
+@pytest.fixture
+def two_threads():
+    """PyTorch at two threads during the test, at its number before it afterwards."""
+    threads = th.get_num_threads()
+    th.set_num_threads(2)
+    yield
+    th.set_num_threads(threads)
+
+
+@pytest.mark.parametrize(
+    "argv, threads",
+    [
+        (["--algo", "dacerf", "--env", "Pendulum-v1", "-n", "3000"], 1),
+        (["--algo=dsac", "--env", "Pendulum-v1"], 1),
+        (["train", "--env", "Pendulum-v1", "--algo", "dacer"], 1),  # python -m sb3_dacerf.zoo train ...
+        (["--algo", "dacerf", "--num-threads", "2"], 2),  # the user's choice, which RL Zoo applies
+        (["--algo", "dacerf", "--num-thr", "2"], 2),  # as abbreviated as RL Zoo's parser accepts it
+        (["--algo", "dacerf", "--num-threads", "-1"], 2),  # RL Zoo's "PyTorch's default"
+        (["--algo", "sac", "--env", "Pendulum-v1"], 2),  # another package's algorithm
+        (["--algo"], 2),  # RL Zoo's parser reports the error
+        ([], 2),
+    ],
+)
+def test_one_thread_for_this_package_unless_the_command_line_chooses(two_threads, argv, threads):
+    choose_threads(argv)
+    assert th.get_num_threads() == threads
+
+
+def test_registering_rl_zoo_utils_chooses_the_threads_of_the_command_line(two_threads, monkeypatch):
+    # Every RL Zoo script imports rl_zoo3.utils, and the start-up hook then registers it, before parsing its arguments
+    monkeypatch.setattr(sys, "argv", ["train.py", "--algo", "dacerf", "--env", "Pendulum-v1"])
+    register(rl_zoo3.utils)
+    assert th.get_num_threads() == 1
 
 
 def test_default_config():
@@ -384,6 +426,7 @@ def test_optimize_two_workers_share_one_study(tmp_path):
 
 NAN_ENV_MODULE = """
 import gymnasium as gym
+import numpy as np
 
 
 class NanRewardPendulum(gym.Wrapper):
@@ -419,3 +462,110 @@ def test_optimize_prunes_a_trial_whose_loss_is_not_finite_and_goes_on(tmp_path):
     storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(tmp_path / "study.log")))
     study = optuna.load_study(study_name="nan", storage=storage)
     assert [trial.state for trial in study.trials] == [optuna.trial.TrialState.PRUNED] * 2, output[-3000:]
+
+
+# A YAML entry's normalize with the masked normaliser (driving ids): the string RL Zoo evaluates, as in a YAML file
+MASKED_NORMALIZE = "dict(norm_obs=True, norm_reward=False, masked=True)"
+
+
+def test_masked_normalization_takes_its_key_out_and_refuses_what_it_cannot_do():
+    kwargs = eval(MASKED_NORMALIZE)
+    assert masked_normalization(kwargs) is True
+    assert kwargs == {"norm_obs": True, "norm_reward": False}  # VecNormalize's and MaskedVecNormalize's arguments
+    plain = {"norm_obs": True, "norm_reward": False}
+    assert masked_normalization(plain) is False and plain == {"norm_obs": True, "norm_reward": False}
+    with pytest.raises(ValueError, match="masked=1: write masked=True"):
+        masked_normalization({"masked": 1})
+    with pytest.raises(ValueError, match="norm_obs=False turns observation normalisation off"):
+        masked_normalization({"masked": True, "norm_obs": False})
+
+
+def test_masked_rows_are_the_driving_vehicle_rows_and_another_env_is_refused():
+    pytest.importorskip("highway_env")
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from sb3_dacerf.envs.driving.common.observation import vehicle_rows
+
+    driving = DummyVecEnv([lambda: gym.make("DACERF-Intersection-v0")])
+    assert masked_rows(driving, "DACERF-Intersection-v0") == vehicle_rows(driving.get_attr("config")[0])
+    with pytest.raises(ValueError, match=r"Pendulum-v1 has no driving config.*drop masked=True"):
+        masked_rows(DummyVecEnv([lambda: gym.make("Pendulum-v1")]), "Pendulum-v1")
+
+
+@pytest.fixture(scope="module")
+def masked_driving_run(tmp_path_factory) -> Path:
+    """A folder where RL Zoo trained DACERF on DACERF-Multilane-v0 for 300 steps with a YAML entry of the masked normaliser."""
+    pytest.importorskip("highway_env")
+    folder = tmp_path_factory.mktemp("masked")
+    entry = yaml.safe_load((HYPERPARAMS_DIR / "dacerf.yml").read_text())["DACERF-Multilane-v0"]
+    entry.update(normalize=MASKED_NORMALIZE, learning_starts=50, batch_size=32, langevin_steps=2)
+    entry["policy_kwargs"] = "dict(net_arch=[32, 32], optimizer_class='RAD')"
+    (folder / "driving.yml").write_text(yaml.safe_dump({"DACERF-Multilane-v0": entry}))
+    train = zoo(
+        "train",
+        *["--algo", "dacerf", "--env", "DACERF-Multilane-v0", "--conf-file", "driving.yml", "-n", "300", "--seed", "0"],
+        *["--eval-freq", "150", "--eval-episodes", "1", "-f", "logs"],
+        cwd=folder,
+    )
+    assert "Normalization activated: MaskedVecNormalize" in train.stdout
+    return folder
+
+
+@pytest.mark.slow  # RL Zoo in a subprocess
+def test_masked_normaliser_from_a_yaml_entry_trains_and_enjoys(masked_driving_run):
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
+    from sb3_dacerf.envs.driving.common.observation import vehicle_rows
+
+    run = masked_driving_run / "logs" / "dacerf" / "DACERF-Multilane-v0_1"
+    venv = DummyVecEnv([lambda: gym.make("DACERF-Multilane-v0")])
+    statistics = VecNormalize.load(str(run / "DACERF-Multilane-v0" / "vecnormalize.pkl"), venv)
+    assert isinstance(statistics, MaskedVecNormalize)
+    assert statistics.rows == vehicle_rows(venv.get_attr("config")[0]) and not statistics.norm_reward
+    # the vehicle rows' entries share the statistics of the present rows; an empty row normalises to zeros
+    start, count, size = statistics.rows
+    assert np.all(statistics.obs_rms.var[start : start + count * size].reshape(count, size) == statistics.obs_rms.row_rms.var)
+    empty = np.zeros((1, venv.observation_space.shape[0]), dtype=np.float32)
+    assert not statistics.normalize_obs(empty)[0, start : start + count * size].any()
+
+    enjoy = zoo(
+        "enjoy",
+        *["--algo", "dacerf", "--env", "DACERF-Multilane-v0", "-f", "logs", "--exp-id", "1", "-n", "50", "--no-render"],
+        cwd=masked_driving_run,
+    )
+    assert "DACERF-Multilane-v0_1/DACERF-Multilane-v0.zip" in enjoy.stdout
+
+
+@pytest.mark.slow  # a subprocess
+def test_model_of_the_masked_normaliser_exports_with_its_statistics(masked_driving_run):
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    run = masked_driving_run / "logs" / "dacerf" / "DACERF-Multilane-v0_1"
+    model_path, statistics_path = run / "DACERF-Multilane-v0.zip", run / "DACERF-Multilane-v0" / "vecnormalize.pkl"
+    command = [sys.executable, "-m", "sb3_dacerf.export", str(model_path), "--format", "torchscript", "--out", "policy.pt"]
+    export = subprocess.run(
+        [*command, "--vec-normalize", str(statistics_path)],
+        env=zoo_command("train")[1],  # this checkout's package
+        cwd=masked_driving_run,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert export.returncode == 0, export.stderr[-3000:]
+
+    # The exported policy on raw observations acts as the model on the observations the statistics normalise
+    venv = DummyVecEnv([lambda: gym.make("DACERF-Multilane-v0", density="random")])
+    statistics = VecNormalize.load(str(statistics_path), venv)
+    statistics.training = False
+    observations = []
+    venv.seed(1)
+    obs = venv.reset()
+    for _ in range(50):
+        observations.append(obs[0])
+        obs, *_ = venv.step(np.zeros((1, 2), dtype=np.float32))
+    raw = np.stack(observations)
+    expected, _ = DACERF.load(model_path).predict(statistics.normalize_obs(raw), deterministic=True)
+    with th.no_grad():
+        exported = th.jit.load(str(masked_driving_run / "policy.pt"))(th.as_tensor(raw)).numpy()
+    assert np.abs(exported - expected).max() <= 1e-5

@@ -4,11 +4,20 @@ Every state-based task of ``dm_control.suite`` is registered as ``DMC-<domain>-<
 (dm_control's own domain and task names, e.g. ``DMC-humanoid-stand-v0``, ``DMC-ball_in_cup-catch-v0``),
 beside shimmy's ``dm_control/<domain>-<task>-v0`` ids, which keep a ``Dict`` observation of ``float64``.
 Importing this module registers the ids and imports no simulator: dm-control and shimmy are imported by ``gym.make``.
+An env made without a ``render_mode`` does not load an OpenGL backend (dm-control's GLFW, EGL or OSMesa): without a
+display, dm-control would otherwise try GLFW first and print its ``DISPLAY`` error. The backend is chosen, as
+dm-control chooses it, when the first env that renders is made.
 The two ``lqr`` tasks are left out: their actuators are unbounded (``±1e10``) and their episodes
 have no time limit, so they have no ``[-1, 1]`` action box nor 1000-step episode.
 """
 
+import contextlib
+import logging
 import os
+import re
+import sys
+from collections.abc import Iterator
+from types import ModuleType
 from typing import Any, SupportsFloat
 
 import gymnasium as gym
@@ -84,6 +93,72 @@ def _no_gl_error(what: str) -> RuntimeError:
     )
 
 
+# dm-control's renderer name when none is loaded (``MUJOCO_GL=disable``), and whether it is this module that chose it
+_NO_RENDERER = "off"
+_renderer_deferred = False
+
+
+def _dm_control_suite(rendering: bool) -> ModuleType:
+    """
+    ``dm_control.suite``, imported without loading an OpenGL backend unless ``rendering`` (or ``MUJOCO_GL``) asks for
+    one; once an env renders, the backend that dm-control would have chosen (``MUJOCO_GL``, else the first of GLFW,
+    EGL and OSMesa that loads) is loaded.
+    """
+    global _renderer_deferred
+    import mujoco  # noqa: F401  (MuJoCo reads MUJOCO_GL for its own renderer when imported: before the change below)
+
+    if not rendering and "MUJOCO_GL" not in os.environ and "dm_control._render" not in sys.modules:
+        os.environ["MUJOCO_GL"] = _NO_RENDERER  # dm-control reads it once, when it is first imported
+        try:
+            import dm_control._render  # noqa: F401  (the import reads MUJOCO_GL)
+        finally:
+            del os.environ["MUJOCO_GL"]
+        _renderer_deferred = True
+    from dm_control import _render, suite
+
+    if rendering and _renderer_deferred:
+        _load_renderer(_render)
+        _renderer_deferred = False
+    return suite
+
+
+def _load_renderer(render: Any) -> None:
+    """Load the OpenGL backend into dm-control's ``_render`` module as its import does when ``MUJOCO_GL`` is unset then."""
+    wanted = os.environ.get("MUJOCO_GL")
+    for names, import_renderer in render._ALL_RENDERERS:
+        if wanted is not None and wanted not in names:
+            continue
+        try:
+            render.Renderer = import_renderer()
+        except ImportError:
+            continue
+        render.BACKEND = names[0]
+        render.USING_GPU = render.BACKEND in render.constants.EGL + render.constants.GLFW
+        return
+
+
+# MuJoCo's compiler warns about attributes of dm-control's own model files (cheetah's ``settotalmass``), which the
+# user of a task cannot change: dm-control passes MuJoCo's warnings to absl's logger
+_MODEL_FILE_DEPRECATION = re.compile(r"compiler attribute '\w+' is deprecated")
+
+
+class _NoModelFileDeprecations(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not _MODEL_FILE_DEPRECATION.search(record.getMessage())
+
+
+@contextlib.contextmanager
+def _quiet_model_compilation() -> Iterator[None]:
+    """Inside the block, MuJoCo's deprecation warnings about dm-control's model files are not logged."""
+    logger = logging.getLogger("absl")
+    no_deprecations = _NoModelFileDeprecations()
+    logger.addFilter(no_deprecations)
+    try:
+        yield
+    finally:
+        logger.removeFilter(no_deprecations)
+
+
 class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarray]):
     """
     A ``dm_control.suite`` task through shimmy, with the observation dict flattened to one ``float32``
@@ -112,11 +187,13 @@ class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarr
         task_kwargs: dict[str, Any] | None = None,
         environment_kwargs: dict[str, Any] | None = None,
     ) -> None:
-        from dm_control import suite
+        needs_gl = (domain_name, task_name) in _TASKS_NEEDING_GL
+        suite = _dm_control_suite(rendering=render_mode is not None or needs_gl)
         from shimmy.dm_control_compatibility import DmControlCompatibilityV0
 
-        dm_env = suite.load(domain_name, task_name, task_kwargs=task_kwargs, environment_kwargs=environment_kwargs)
-        if (domain_name, task_name) in _TASKS_NEEDING_GL:
+        with _quiet_model_compilation():
+            dm_env = suite.load(domain_name, task_name, task_kwargs=task_kwargs, environment_kwargs=environment_kwargs)
+        if needs_gl:
             try:
                 _ = dm_env.physics.contexts  # creating the GL context is what fails without a backend
             # MuJoCo reports a missing OpenGL backend with several exception types (FatalError, RuntimeError, ...)
