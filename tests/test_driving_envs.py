@@ -861,6 +861,11 @@ def test_travel_time():
     np.testing.assert_allclose(travel_time(np.array([10.0]), 5.0, 1.0, 4.0), [2.0])
 
 
+# The checkers' advice, expected here: the waypoints' positions in the observation have no finite bound, and the
+# default action space is the paper's increments in their units (normalized_action=True gives Box(-1, 1))
+@pytest.mark.filterwarnings("ignore:.*A Box observation space m(in|ax)imum value is -?infinity")
+@pytest.mark.filterwarnings("ignore:.*For Box action spaces, we recommend using a symmetric and normalized space")
+@pytest.mark.filterwarnings("ignore:We recommend you to use a symmetric and normalized Box action space")
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_check_env(env_id):
     from gymnasium.utils.env_checker import check_env as gym_check_env
