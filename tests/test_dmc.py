@@ -145,6 +145,42 @@ def test_rgb_array_rendering():
     assert result.stdout.strip() == "(240, 320, 3) uint8"
 
 
+def _python_headless(code: str) -> subprocess.CompletedProcess:
+    """``_python`` on a machine without a display where no MuJoCo OpenGL backend was chosen (no ``MUJOCO_GL``)."""
+    env = {name: value for name, value in os.environ.items() if name not in ("MUJOCO_GL", "DISPLAY")}
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.slow  # a subprocess
+def test_an_env_that_does_not_render_loads_no_opengl_backend_and_prints_nothing():
+    # Without a display, dm-control's GLFW backend printed a DISPLAY error, and MuJoCo warns through absl about an
+    # attribute of dm-control's cheetah model
+    code = (
+        "import sys, gymnasium, sb3_dacerf; env = gymnasium.make('DMC-cheetah-run-v0'); env.reset(seed=0); "
+        "env.step(env.action_space.sample()); from dm_control import _render; "
+        "print(_render.BACKEND, 'dm_control._render.glfw_renderer' in sys.modules)"
+    )
+    result = _python_headless(code)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["off", "False"]
+    assert result.stderr == ""
+
+
+@pytest.mark.slow  # a subprocess
+def test_an_env_that_renders_after_one_that_does_not_gets_the_backend():
+    gl = os.environ.get("MUJOCO_GL", "egl")
+    code = (
+        "import os, gymnasium, sb3_dacerf; gymnasium.make('DMC-cheetah-run-v0').reset(seed=0); "
+        f"os.environ['MUJOCO_GL'] = {gl!r}; env = gymnasium.make('DMC-cartpole-swingup-v0', render_mode='rgb_array'); "
+        "env.reset(seed=0); frame = env.render(); from dm_control import _render; print(frame.shape, _render.BACKEND)"
+    )
+    result = _python_headless(code)
+    if "MUJOCO_GL" in result.stderr:
+        pytest.skip(f"no MuJoCo OpenGL backend here: {result.stderr.strip().splitlines()[-1]}")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == f"(240, 320, 3) {gl}"
+
+
 @pytest.mark.slow  # a subprocess
 def test_no_gl_backend_error_names_mujoco_gl():
     code = (
