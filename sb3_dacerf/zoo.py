@@ -11,6 +11,9 @@ on a new database no longer fail creating Optuna's tables.
 RL Zoo leaves PyTorch at one thread per core unless ``--num-threads`` is given; a command whose ``--algo`` is DACERF,
 DACER or DSAC gets one thread instead (see :func:`choose_threads`), unless it gives ``--num-threads``.
 
+A YAML entry's ``normalize: "dict(norm_obs=True, norm_reward=False, masked=True)"`` (driving ids) normalises the
+observations with :class:`~sb3_dacerf.common.vec_normalize.MaskedVecNormalize` (see :func:`masked_normalization`).
+
 RL Zoo's ``ParallelTrainCallback`` (``-params callback:"'rl_zoo3.callbacks.ParallelTrainCallback'"``), gradient
 steps in a thread while the environment steps, works with DACERF, DACER and DSAC as with SAC: see
 :class:`ParallelTraining`.
