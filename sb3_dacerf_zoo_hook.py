@@ -4,7 +4,9 @@ Start-up hook that makes ``python -m rl_zoo3.train --algo dacerf ...`` (and ``--
 ``pip install`` puts ``sb3_dacerf_zoo.pth`` (Python <= 3.14) and ``sb3_dacerf_zoo.start`` (PEP 829, Python >= 3.15)
 in site-packages; both call :func:`install` at interpreter start. That only adds a finder to ``sys.meta_path``
 and imports nothing: when RL Zoo's ``utils``, ``hyperparams_opt``, ``exp_manager`` or ``callbacks`` module has been
-executed, :func:`sb3_dacerf.zoo.register` adds DACERF and DACER to it. Set ``SB3_DACERF_NO_ZOO_HOOK=1`` to turn the hook off.
+executed, :func:`sb3_dacerf.zoo.register` adds DACERF, DACER and DSAC to it (and, with ``rl_zoo3.utils``, gives
+them one PyTorch thread unless the command line has ``--num-threads``). Set ``SB3_DACERF_NO_ZOO_HOOK=1`` to turn the
+hook off.
 """
 
 import os

@@ -41,12 +41,13 @@ def run(command: str, cwd: Path) -> subprocess.CompletedProcess:
         script, args = words[2].removeprefix("rl_zoo3."), words[3:]
     else:
         script, args = words[1].removesuffix(".py"), words[2:]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # this checkout's package, wherever `pip install -e` points
+    python_path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path}
     if HOOK_INSTALLED:
         program = [sys.executable, "-m", f"rl_zoo3.{script}"]
     else:
         program = [sys.executable, "-m", "sb3_dacerf.zoo", script]
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
     result = subprocess.run([*program, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, f"{command}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
     return result
