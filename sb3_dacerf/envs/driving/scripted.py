@@ -38,7 +38,7 @@ from gymnasium import spaces
 from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
-from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv
+from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv, travel_time
 
 
 class ScriptedDriver:
@@ -118,23 +118,6 @@ class ScriptedDriver:
             if np.min(np.hypot(*(other - ego).T)) < self.conflict_distance:
                 return True
         return False
-
-
-def travel_time(distance: np.ndarray, speed: float, acceleration: float, max_speed: float) -> np.ndarray:
-    """
-    Time [s] to cover ``distance`` [m] from ``speed``, accelerating at ``acceleration`` up to ``max_speed`` [m/s].
-
-    :param distance: distances (negative ones count as 0)
-    :param speed: initial speed, >= 0
-    :param acceleration: > 0
-    :param max_speed: the speed kept once reached (the initial speed if it is higher)
-    """
-    distance = np.maximum(np.asarray(distance, dtype=np.float64), 0.0)
-    max_speed = max(max_speed, speed, 1e-6)
-    t_accelerating = (max_speed - speed) / acceleration
-    d_accelerating = speed * t_accelerating + 0.5 * acceleration * t_accelerating**2
-    while_accelerating = (np.sqrt(speed**2 + 2 * acceleration * distance) - speed) / acceleration
-    return np.where(distance <= d_accelerating, while_accelerating, t_accelerating + (distance - d_accelerating) / max_speed)
 
 
 class JunctionDriver(ScriptedDriver):

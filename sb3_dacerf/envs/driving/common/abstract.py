@@ -342,6 +342,10 @@ class PaperDrivingMixin(_HighwayEnv):
         """
         return max(self.reference_speed + self.np_random.normal(0.0, 0.5), 0.0)
 
+    def reference_speed_cap(self) -> float:
+        """The highest reference speed [m/s] the scenario allows in its current state: none (``inf``) by default."""
+        return np.inf
+
     def _road_clearance(self, position: np.ndarray) -> float:
         """Distance [m] from a position to the nearest road edge, negative off the road."""
         raise NotImplementedError
