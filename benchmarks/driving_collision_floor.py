@@ -78,10 +78,8 @@ class LaneDriver(BrakingDriver):
             ahead = [lane.local_coordinates(v.position) for v in unwrapped.road.vehicles if v is not ego]
             close = any(abs(lateral) < 2.5 and 0 < s_v - s < 2.0 * ego.speed + 8.0 for s_v, lateral in ahead)
             acceleration = braking if close else 0.0
-        action_type = unwrapped.action_type
-        feedforward = unwrapped._steering_feedforward() if action_type.steering_feedforward is not None else None
         desired = np.array([acceleration, self._steering(waypoints, 1.0)])
-        return action_type.command_action(desired, feedforward).astype(np.float32)
+        return unwrapped.action_type.command_action(desired).astype(np.float32)
 
 
 def drive(env: gym.Env, driver: ScriptedDriver, seed: int, speeds: list[dict[int, float]] | None = None) -> dict:

@@ -346,31 +346,6 @@ def test_intersection_routes(route):
     assert terminated and info["is_success"] and info["route"] == route
 
 
-@pytest.mark.parametrize("env_id", ENV_IDS)
-def test_normalized_action_keeps_the_increment_bounds_with_zero_at_the_centre(env_id):
-    env = make(env_id, normalized_action=True)
-    env.reset(seed=0)
-    assert env.action_space == gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-    action_type = env.unwrapped.action_type
-    for action, increment in [
-        ([1, 1], PAPER_INCREMENT_HIGH),
-        ([-1, -1], PAPER_INCREMENT_LOW),
-        ([0, 0], [0, 0]),
-        ([0.5, -0.5], [0.125, -0.0125]),
-        ([3, -3], PAPER_INCREMENT_HIGH * [1, -1]),
-    ]:
-        np.testing.assert_allclose(action_type.to_increment(np.array(action, dtype=float)), increment, atol=1e-12)
-        np.testing.assert_allclose(
-            action_type.to_increment(action_type.to_action(np.array(increment, dtype=float))), increment, atol=1e-12
-        )
-    previous = action_type.command.copy()
-    env.step(np.array([-1.0, 0.4], dtype=np.float32))
-    np.testing.assert_allclose(action_type.command - previous, [-0.4, 0.01], atol=1e-12)
-    # The centre of the raw box is a braking increment; the centre of the normalised one is none.
-    raw = make(env_id).action_space
-    assert (raw.low + raw.high)[0] / 2 == pytest.approx(-0.075)
-
-
 def test_demonstrator_names_are_the_drivers_names():
     # the command-line tools offer DEMONSTRATOR_NAMES without importing highway-env; each must name a driver
     from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
@@ -421,128 +396,6 @@ def test_environments_import_nothing_from_the_algorithms():
         return any(nxt == target or (nxt not in seen and reaches(nxt, target, seen | {nxt})) for nxt in graph[start])
 
     assert not [module for module in graph if reaches(module, module, {module})]
-
-
-def test_the_demonstrations_moved_with_a_deprecated_alias():
-    from sb3_dacerf.common import demonstrations
-    from sb3_dacerf.envs.driving import scripted
-
-    with pytest.warns(DeprecationWarning, match=r"moved to sb3_dacerf\.common\.demonstrations\.add_scripted_transitions"):
-        from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
-    assert add_scripted_transitions is demonstrations.add_scripted_transitions
-    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
-        scripted.no_such_name  # noqa: B018  (the attribute access is the test)
-
-
-@pytest.mark.parametrize(
-    "config",
-    [{"normalized_action": True}, {"action_mode": "target"}, {"action_mode": "target", "steering_feedforward": True}],
-)
-def test_scripted_driver_drives_the_same_with_every_action_option(config):
-    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
-
-    def drive(**config):
-        env = make("DACERF-Intersection-v0", duration=8, **config)
-        obs, _ = env.reset(seed=2)
-        driver, commands = ScriptedDriver(env), []
-        for _ in range(40):
-            obs, *_ = env.step(driver(obs))
-            commands.append(env.unwrapped.action_type.command.copy())
-        return np.array(commands)
-
-    np.testing.assert_allclose(drive(**config), drive(), atol=1e-6)
-
-
-@pytest.mark.parametrize("env_id", ENV_IDS)
-def test_target_action_moves_the_command_towards_it_within_the_increment_bounds(env_id):
-    env = make(env_id, action_mode="target", duration=10)
-    env.reset(seed=0)
-    assert env.action_space == gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-    action_type = env.unwrapped.action_type
-    np.testing.assert_allclose(action_type.to_target(np.array([0.5, -1.0])), [0.4, -0.571])
-    commands = []
-    for _ in range(8):
-        env.step(np.array([0.5, -0.2], dtype=np.float32))
-        commands.append(action_type.command.copy())
-    commands = np.array(commands)
-    # a_x rises by the jerk bound 0.25 per step to its target 0.4 and stays; δ falls by 0.025 to -0.1142 and stays
-    np.testing.assert_allclose(commands[:, 0], [0.25, 0.4, 0.4, 0.4, 0.4, 0.4, 0.4, 0.4], atol=1e-12)
-    np.testing.assert_allclose(commands[:4, 1], [-0.025, -0.05, -0.075, -0.1], atol=1e-12)
-    np.testing.assert_allclose(commands[4:, 1], -0.2 * 0.571, atol=1e-12)
-    # Noise on the action jitters the command around its target instead of adding up: after 60 steps of noise
-    # around zero the command is within a few noise widths of zero, where increments drift as a random walk.
-    rng = np.random.default_rng(0)
-    noise = rng.normal(0.0, 0.3, (60, 2)).clip(-1, 1).astype(np.float32)
-
-    def final_command(**config):
-        env = make("DACERF-Multilane-v0", **config)
-        env.reset(seed=1)
-        action_type = env.unwrapped.action_type
-        for action in noise:  # the action type alone, without simulating: the ego does not move
-            action_type.act(action)
-        return action_type.command
-
-    target_mode = final_command(action_mode="target")
-    assert abs(target_mode[0]) <= 0.3 * 0.8 * 3 and abs(target_mode[1]) <= 0.3 * 0.571 * 3
-    assert abs(target_mode[1]) < abs(final_command(normalized_action=True)[1])
-
-
-def test_an_action_type_pickled_before_the_action_options_still_acts():
-    env = make("DACERF-Multilane-v0")
-    env.reset(seed=0)
-    action_type = env.unwrapped.action_type
-    for name in ("normalized", "mode", "steering_feedforward", "steering_residual"):
-        del action_type.__dict__[name]  # as unpickled from an older checkpoint
-    previous = action_type.command.copy()
-    env.step(np.array([0.25, 0.025], dtype=np.float32))
-    np.testing.assert_allclose(action_type.command - previous, [0.25, 0.025])
-
-
-def test_steering_feedforward_drives_a_turn_with_zero_actions():
-    """With the feedforward a zero action follows the path's curvature within the steering-rate bounds."""
-    env = gym.make("DACERF-Intersection-v0", density="sparse", config={"routes": ["right"], "steering_feedforward": True})
-    unwrapped = env.unwrapped
-    obs, info = env.reset(seed=0)
-    action_type = unwrapped.action_type
-    assert action_type.steering_residual == pytest.approx(0.0, abs=1e-6)  # straight approach: nothing to add yet
-    steerings, done = [], False
-    while not done:
-        obs, _reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
-        assert abs(action_type.applied_increment[1]) <= 0.025 + 1e-12
-        assert obs[4] == pytest.approx(action_type.command[1], abs=1e-6)  # the observation has the applied steering
-        steerings.append(action_type.command[1])
-        done = terminated or truncated
-    assert info["is_success"] and not info["collision"]
-    assert max(np.abs(steerings)) > 0.1  # it did steer
-    # Without it the same zero actions drive straight on and never reach the right exit.
-    env = gym.make("DACERF-Intersection-v0", density="sparse", config={"routes": ["right"]})
-    env.reset(seed=0)
-    done = False
-    while not done:
-        _obs, _reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
-        done = terminated or truncated
-    assert not info["is_success"]
-
-
-def test_steering_feedforward_adds_the_policy_residual():
-    env = make("DACERF-Intersection-v0", routes=["straight"], steering_feedforward=True)
-    env.reset(seed=0)
-    action_type = env.unwrapped.action_type
-    for _ in range(4):
-        env.step(np.array([0.0, 0.025], dtype=np.float32))
-    # Straight approach, feedforward 0: the residual and the steering integrate Δδ as without the feedforward.
-    assert action_type.steering_residual == pytest.approx(0.1)
-    assert action_type.command[1] == pytest.approx(0.1)
-
-
-def test_steering_feedforward_changes_nothing_on_the_straight_highway():
-    def drive(**config):
-        env = make("DACERF-Multilane-v0", **config)
-        env.reset(seed=5)
-        rng = np.random.default_rng(0)
-        return [env.step((rng.uniform(-1, 1, 2) * [0.2, 0.02]).astype(np.float32))[0] for _ in range(20)]
-
-    np.testing.assert_allclose(drive(steering_feedforward=True), drive(), atol=1e-9)
 
 
 def lone_intersection(route: str) -> tuple[gym.Env, Any]:
@@ -826,7 +679,6 @@ def test_bad_kwargs_raise_clear_errors():
         ("DACERF-Multilane-v0", {"collision_penalty": "big"}, r"config\['collision_penalty'\]"),
         ("DACERF-Multilane-v0", {"huber_delta": 0}, r"config\['huber_delta'\] must be a number > 0"),
         ("DACERF-Multilane-v0", {"safe_space_margin": [3.0]}, r"config\['safe_space_margin'\] must be a pair"),
-        ("DACERF-Multilane-v0", {"action_mode": "targets"}, r"config\['action_mode'\] must be one of \['increment', 'target'\]"),
         ("DACERF-Multilane-v0", {"render_agent": "yes"}, r"config\['render_agent'\] must be True or False"),
         ("DACERF-Intersection-v0", {"spawn_probability": 1.5}, r"config\['spawn_probability'\] must be a number >= 0 and <= 1"),
         ("DACERF-Intersection-v0", {"routes": "left"}, r"config\['routes'\] must be a non-empty list"),
