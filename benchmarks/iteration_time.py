@@ -3,7 +3,6 @@ Training iteration time: one gradient step of DACERF beside DACER (20-step diffu
 
 A gradient step is what ``model.train()`` does per update, environment excluded: replay sampling, the critic update
 and the actor update amortised over the policy delay. Every configuration runs its algorithm's own defaults apart
-import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
 from ``net_arch=[256, 256]`` (see ``timing.CONFIGURATIONS``): DACERF with the paper's 20 Langevin steps, policy
 delay 3 and one sampling step (no shortcut), ReLU; DACER with 20 diffusion steps, policy delay 2 and Mish
 activations, as in its official code; "DACER (ReLU)" the same with ReLU, for DACER against DACERF at equal
@@ -11,20 +10,12 @@ activation; SAC and TQC updating their actor every step. ``model.train(gradient_
 policy delays) and divided by 6; the configurations of one (size, batch) are called in turn, in one process, in a
 new random order each round, and the tables give medians, ratios to SAC and DACER / DACERF in both comparisons.
 DACER's entropy estimate (a Gaussian mixture fitted to 200 actions per state of a batch, once every 10,000
-updates) is timed apart and given amortised. Spaces as in ``inference_latency.py``; the replay buffer holds random
-transitions.
-
-After the grid, the script prints where a gradient step's time goes (``step_breakdown.breakdown``: DACERF, DACER
-and SAC, 1,000 steps under cProfile at humanoid sizes, batch 256; ``--breakdown-updates 0`` skips it) and the cost of
-``learn()`` per environment step, DACERF against SAC, each with its constructor defaults, on Pendulum-v1 and DMC
-walker-walk, in alternating blocks of 400 steps in this process (``step_breakdown.learn_ratio``;
-``--learn-blocks 0`` skips it). ``--skip-grid`` prints these two only.
+updates) is timed apart and given amortised. Spaces: ``timing.SIZES``; the replay buffer holds random transitions.
 
 Usage::
 
     python benchmarks/iteration_time.py [--quick] [--device cpu|cuda] [--threads 1] [--clock wall|cpu] [--rounds 40]
-                                        [--sizes ...] [--batch-sizes 256 512] [--skip-grid] [--breakdown-updates 1000]
-                                        [--learn-blocks 10]
+                                        [--sizes ...] [--batch-sizes 256 512]
 """
 
 import argparse
@@ -39,7 +30,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.logger import Logger
-from step_breakdown import LEARN_ENVS, breakdown, learn_ratio, print_breakdown
 from timing import (
     CLOCKS,
     CONFIGURATIONS,
@@ -56,7 +46,6 @@ from timing import (
 
 from sb3_dacerf import DACER
 
-LEARN_BLOCK = 400  # environment steps per timed learn() block
 GRADIENT_STEPS = 6  # a multiple of DACERF's policy delay (3) and DACER's (2)
 BUFFER_SIZE = 10_000
 # DACER against DACERF: (label, DACER configuration)
@@ -133,11 +122,6 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=40, help="timed rounds per (size, batch)")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES), metavar="SIZE", help=f"of {list(SIZES)}")
-    parser.add_argument("--skip-grid", action="store_true", help="only the breakdown and the learn() ratios")
-    parser.add_argument("--breakdown-updates", type=int, default=1000, help="gradient steps profiled per algorithm (0: none)")
-    parser.add_argument(
-        "--learn-blocks", type=int, default=10, help="timed learn() blocks per algorithm and environment (0: none)"
-    )
     add_common_arguments(parser, plot="iteration_time.png")
     args = parser.parse_args()
     apply_common_arguments(parser, args, plot="iteration_time.png")
@@ -151,34 +135,7 @@ def main() -> None:
         f"net_arch {NET_ARCH}; {load_average()} at start"
     )
     print(header, flush=True)
-    if not args.skip_grid:
-        grid(args, names, dacerfs, rounds, batch_sizes, header)
-    if args.breakdown_updates > 0:
-        print(f"\nBreakdown of a gradient step (humanoid 67/24, batch 256, {args.breakdown_updates} steps under cProfile):\n")
-        print_breakdown(
-            {
-                name: breakdown(
-                    ready_to_train(name, *SIZES["humanoid 67/24"], args.device), name, args.breakdown_updates, clock=args.clock
-                )
-                for name in ("DACERF", "DACER", "SAC")
-            }
-        )
-    if args.learn_blocks > 0:
-        print(
-            f"\nlearn() per environment step, each algorithm's defaults ({args.learn_blocks} alternating blocks of "
-            f"{LEARN_BLOCK} steps):\n"
-        )
-        print("| environment | DACERF (ms/step) | SAC (ms/step) | DACERF / SAC |")
-        print("|---|---|---|---|")
-        ratios = {}
-        for env_id in LEARN_ENVS:
-            medians = learn_ratio(env_id, args.learn_blocks, LEARN_BLOCK, args.clock)
-            ratios[env_id] = medians["DACERF"] / medians["SAC"]
-            dacerf, sac = 1e3 * medians["DACERF"], 1e3 * medians["SAC"]
-            print(f"| {env_id} | {dacerf:.2f} | {sac:.2f} | {ratios[env_id]:.2f} |", flush=True)
-        for env_id, ratio in ratios.items():
-            met, stretch = verdict(ratio <= 1.5), verdict(ratio <= 1.3)
-            print(f"- {env_id}: DACERF / SAC = {ratio:.2f} (≤ 1.5: {met}; stretch ≤ 1.3: {stretch})")
+    grid(args, names, dacerfs, rounds, batch_sizes, header)
 
 
 def grid(

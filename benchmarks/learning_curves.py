@@ -53,7 +53,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
+import _checkout  # the repository's sb3_dacerf, not an installed copy; its ROOT names the commit
 import numpy as np
 
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {

@@ -8,11 +8,13 @@ For each seeded episode this plays two policies from the same start:
   at the time limit sees; an episode that ends earlier, e.g. when a stall ends it, counts as it ended);
 - ``scripted``: :class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`, to the end of the episode.
 
-and prints, per route, the mean discounted values (``--gamma``), the scripted driver's outcomes and how often it is
-worth more than standing. Any config key can be set with ``--config`` (e.g. the severe-event penalty)::
+and prints, per density and route, the mean discounted values (``--gamma``), the scripted driver's outcomes, how often
+it is worth more than standing, and the break-even crash rate: the share of crashes at which an attempt (the scripted
+driver's arrivals and crashes mixed in that proportion) is worth as much as standing. Any config key can be set with
+``--config`` (e.g. the severe-event penalty)::
 
-    python benchmarks/standing_value.py --episodes 50
-    python benchmarks/standing_value.py --episodes 50 --config '{"dynamic_penalty_discount": 0.99}'
+    python benchmarks/standing_value.py --episodes 50 --density sparse normal dense
+    python benchmarks/standing_value.py --episodes 50 --config '{"collision_penalty": "dynamic", "yield_at_junction": false}'
 """
 
 from __future__ import annotations
@@ -59,35 +61,52 @@ def scripted_value(env: gym.Env, seed: int, gamma: float) -> tuple[float, dict]:
     return discounted(rewards, gamma), info
 
 
-def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
+def break_even(standing: float, arrivals: np.ndarray, crashes: np.ndarray) -> float:
+    """The crash rate at which mixing the arrivals' and the crashes' mean values is worth as much as standing."""
+    if not len(arrivals) or not len(crashes):
+        return float("nan")
+    arrive, crash = float(arrivals.mean()), float(crashes.mean())
+    return float(np.clip((arrive - standing) / (arrive - crash), 0.0, 1.0)) if arrive > crash else float("nan")
+
+
+def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float]]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="DACERF-Intersection-v0")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=10_000, help="first evaluation seed")
     parser.add_argument("--gamma", type=float, default=0.99)
     parser.add_argument("--stand-steps", type=int, default=100)
+    parser.add_argument("--density", nargs="+", default=["normal"], help="traffic densities, each in turn")
     parser.add_argument("--config", type=json.loads, default={}, help="env config overrides, as JSON")
     args = parser.parse_args(argv)
     if not 0 < args.gamma < 1:
         parser.error(f"--gamma must be in (0, 1), got {args.gamma}")
-    env = gym.make(args.env, config=args.config)
-    rows: dict[str, list[tuple[float, float, bool, bool]]] = defaultdict(list)
-    for seed in range(args.seed, args.seed + args.episodes):
-        stand = standing_value(env, seed, args.gamma, args.stand_steps)
-        drive, info = scripted_value(env, seed, args.gamma)
-        route = info.get("route", "all")
-        rows[route].append((stand, drive, bool(info["is_success"]), bool(info["collision"])))
     summary = {}
     print(f"{args.env}, config {args.config}, gamma {args.gamma}, seeds {args.seed}-{args.seed + args.episodes - 1}")
-    print("| route | episodes | standing | scripted driver | its arrival / collision | scripted worth more |")
-    print("|---|---|---|---|---|---|")
-    for route, values in sorted(rows.items()):
-        v = np.asarray(values, dtype=float)
-        summary[route] = dict(standing=v[:, 0].mean(), scripted=v[:, 1].mean(), better=float(np.mean(v[:, 1] > v[:, 0])))
-        print(
-            f"| {route} | {len(v)} | {v[:, 0].mean():,.0f} | {v[:, 1].mean():,.0f} | {v[:, 2].mean():.0%} / "
-            f"{v[:, 3].mean():.0%} | {summary[route]['better']:.0%} |"
-        )
+    print(
+        "| density | route | episodes | standing | scripted driver | its arrival / collision | scripted worth more "
+        "| break-even crash rate |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for density in args.density:
+        env = gym.make(args.env, config=args.config, density=density)
+        rows: dict[str, list[tuple[float, float, bool, bool]]] = defaultdict(list)
+        for seed in range(args.seed, args.seed + args.episodes):
+            stand = standing_value(env, seed, args.gamma, args.stand_steps)
+            drive, info = scripted_value(env, seed, args.gamma)
+            rows[info.get("route", "all")].append((stand, drive, bool(info["is_success"]), bool(info["collision"])))
+        for route, values in sorted(rows.items()):
+            v = np.asarray(values, dtype=float)
+            standing = float(v[:, 0].mean())
+            threshold = break_even(standing, v[v[:, 2] == 1, 1], v[v[:, 3] == 1, 1])
+            summary[density, route] = dict(
+                standing=standing, scripted=float(v[:, 1].mean()), better=float(np.mean(v[:, 1] > v[:, 0])), break_even=threshold
+            )
+            print(
+                f"| {density} | {route} | {len(v)} | {standing:,.0f} | {v[:, 1].mean():,.0f} | {v[:, 2].mean():.0%} / "
+                f"{v[:, 3].mean():.0%} | {summary[density, route]['better']:.0%} | {threshold:.0%} |",
+                flush=True,
+            )
     return summary
 
 

@@ -1,5 +1,5 @@
 """
-The timing harness shared by the speed benchmarks (``inference_latency.py``, ``iteration_time.py``, ``latency.py``).
+The timing harness shared by the speed benchmarks (``iteration_time.py``, ``latency.py``).
 
 - :class:`SpacesOnly`: an environment that only has spaces, so that models can be built without a simulator;
 - :data:`SIZES`: the space sizes of the DACER-F paper's figures;

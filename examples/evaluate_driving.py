@@ -394,12 +394,7 @@ def load_driver(
 def baseline_driver(kind: str, env: gym.Env) -> Callable[[np.ndarray], np.ndarray]:
     """A scripted driver (``scripted``, ``junction``) or zero increments (``idle``) of one env."""
     if kind == "idle":
-        unwrapped = env.unwrapped
-
-        def act(obs: np.ndarray) -> np.ndarray:
-            return unwrapped.action_type.to_action(np.zeros(2)).astype(np.float32)
-
-        return act
+        return lambda obs: np.zeros(2, dtype=np.float32)
     from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
 
     return DEMONSTRATORS[kind](env)
@@ -419,7 +414,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--idle",
         action="store_true",
-        help="evaluate zero increments (the start speed and steering held, steering_feedforward's path if set) "
+        help="evaluate zero increments (the start speed and steering held) "
         "instead of a model (needs --env): the floor a trained driver must beat",
     )
     parser.add_argument("--env", choices=list(SCENARIOS), help="scenario (default: the one the model was trained on)")

@@ -6,6 +6,7 @@ import pickle
 import subprocess
 import sys
 import warnings
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -21,6 +22,7 @@ from sb3_dacerf.envs.driving.common import (
     WAYPOINT_FEATURES,
     observe_scene,
 )
+from sb3_dacerf.envs.driving.intersection import ROUTES
 
 ENV_IDS = ["DACERF-Multilane-v0", "DACERF-Intersection-v0"]
 PAPER_INCREMENT_LOW, PAPER_INCREMENT_HIGH = np.array([-0.4, -0.025]), np.array([0.25, 0.025])
@@ -261,7 +263,7 @@ def test_stall_ends_the_episode_with_the_severe_penalty():
     # stopped within a few seconds, then 5 s without 2 m of progress
     assert terminated and info["stalled"] and not (info["collision"] or info["off_road"] or info["is_success"])
     assert 50 < steps < 100
-    assert info["reward_terms"]["stalled"] == pytest.approx(-env.unwrapped._severe_penalty()) and reward < -1000
+    assert info["reward_terms"]["stalled"] == pytest.approx(-env.unwrapped._severe_penalty()) and reward <= -200
     # off by default
     env = gym.make("DACERF-Intersection-v0")
     env.reset(seed=0)
@@ -271,24 +273,28 @@ def test_stall_ends_the_episode_with_the_severe_penalty():
 
 
 def test_exploring_start_on_the_reference_path():
-    """reference_start_probability=1: every episode starts on the path, up to the exit lane, steering along its curvature."""
+    """reference_start_probability=1: each episode starts on the path, up to 15 m into the exit lane, steering along it."""
     from sb3_dacerf.envs.driving.common.reference import nominal_steering
 
     env = gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 1.0})
     approach_end = env.unwrapped.road.network.get_lane(("o0", "ir0", 0)).length
-    turning = 0
-    for seed in range(12):
+    turning = past = 0
+    for seed in range(24):
         observation, _ = env.reset(seed=seed)
         unwrapped = env.unwrapped
         scene, ego = unwrapped.scene, unwrapped.vehicle
-        assert approach_end - 20.5 <= scene.reference_progress <= approach_end + 25.0
+        exit_start = unwrapped.reference.project(
+            unwrapped.road.network.get_lane((f"il{ROUTES[unwrapped.route]}", f"o{ROUTES[unwrapped.route]}", 0)).position(0, 0)
+        )[0]
+        assert approach_end - 20.5 <= scene.reference_progress <= exit_start + 15.5
+        past += scene.reference_progress > exit_start
         assert abs(scene.lateral_error) < 1.0 and abs(scene.heading_error) < 0.1
         steering = nominal_steering(scene.reference_curvature, ego.LENGTH)
         assert unwrapped.action_type.command[1] == pytest.approx(ego.action["steering"])
         assert unwrapped.action_type.command[1] == pytest.approx(steering, abs=0.05)
         assert observation[4] == pytest.approx(ego.action["steering"])  # δ in the observation
         turning += abs(ego.action["steering"]) > 0.1
-    assert turning >= 3  # some episodes start inside a turn
+    assert turning >= 3 and past >= 2  # some episodes start inside a turn, some past the junction
     # the default draws no exploring start: the first steps of a seeded episode do not change
     default = gym.make("DACERF-Intersection-v0")
     explored = gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 0.0})
@@ -338,31 +344,6 @@ def test_intersection_routes(route):
     ego.position, ego.heading = exit_lane.position(30.0, 0.0), exit_lane.heading_at(30.0)
     _, _, terminated, _, info = env.step(np.zeros(2, dtype=np.float32))
     assert terminated and info["is_success"] and info["route"] == route
-
-
-@pytest.mark.parametrize("env_id", ENV_IDS)
-def test_normalized_action_keeps_the_increment_bounds_with_zero_at_the_centre(env_id):
-    env = make(env_id, normalized_action=True)
-    env.reset(seed=0)
-    assert env.action_space == gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-    action_type = env.unwrapped.action_type
-    for action, increment in [
-        ([1, 1], PAPER_INCREMENT_HIGH),
-        ([-1, -1], PAPER_INCREMENT_LOW),
-        ([0, 0], [0, 0]),
-        ([0.5, -0.5], [0.125, -0.0125]),
-        ([3, -3], PAPER_INCREMENT_HIGH * [1, -1]),
-    ]:
-        np.testing.assert_allclose(action_type.to_increment(np.array(action, dtype=float)), increment, atol=1e-12)
-        np.testing.assert_allclose(
-            action_type.to_increment(action_type.to_action(np.array(increment, dtype=float))), increment, atol=1e-12
-        )
-    previous = action_type.command.copy()
-    env.step(np.array([-1.0, 0.4], dtype=np.float32))
-    np.testing.assert_allclose(action_type.command - previous, [-0.4, 0.01], atol=1e-12)
-    # The centre of the raw box is a braking increment; the centre of the normalised one is none.
-    raw = make(env_id).action_space
-    assert (raw.low + raw.high)[0] / 2 == pytest.approx(-0.075)
 
 
 def test_demonstrator_names_are_the_drivers_names():
@@ -417,126 +398,87 @@ def test_environments_import_nothing_from_the_algorithms():
     assert not [module for module in graph if reaches(module, module, {module})]
 
 
-def test_the_demonstrations_moved_with_a_deprecated_alias():
-    from sb3_dacerf.common import demonstrations
-    from sb3_dacerf.envs.driving import scripted
-
-    with pytest.warns(DeprecationWarning, match=r"moved to sb3_dacerf\.common\.demonstrations\.add_scripted_transitions"):
-        from sb3_dacerf.envs.driving.scripted import add_scripted_transitions
-    assert add_scripted_transitions is demonstrations.add_scripted_transitions
-    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
-        scripted.no_such_name  # noqa: B018  (the attribute access is the test)
-
-
-@pytest.mark.parametrize(
-    "config",
-    [{"normalized_action": True}, {"action_mode": "target"}, {"action_mode": "target", "steering_feedforward": True}],
-)
-def test_scripted_driver_drives_the_same_with_every_action_option(config):
-    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
-
-    def drive(**config):
-        env = make("DACERF-Intersection-v0", duration=8, **config)
-        obs, _ = env.reset(seed=2)
-        driver, commands = ScriptedDriver(env), []
-        for _ in range(40):
-            obs, *_ = env.step(driver(obs))
-            commands.append(env.unwrapped.action_type.command.copy())
-        return np.array(commands)
-
-    np.testing.assert_allclose(drive(**config), drive(), atol=1e-6)
-
-
-@pytest.mark.parametrize("env_id", ENV_IDS)
-def test_target_action_moves_the_command_towards_it_within_the_increment_bounds(env_id):
-    env = make(env_id, action_mode="target", duration=10)
+def lone_intersection(route: str) -> tuple[gym.Env, Any]:
+    """An intersection episode on ``route`` with no traffic."""
+    env = gym.make("DACERF-Intersection-v0", config={"initial_vehicle_count": 0, "spawn_probability": 0.0, "routes": [route]})
     env.reset(seed=0)
-    assert env.action_space == gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-    action_type = env.unwrapped.action_type
-    np.testing.assert_allclose(action_type.to_target(np.array([0.5, -1.0])), [0.4, -0.571])
-    commands = []
-    for _ in range(8):
-        env.step(np.array([0.5, -0.2], dtype=np.float32))
-        commands.append(action_type.command.copy())
-    commands = np.array(commands)
-    # a_x rises by the jerk bound 0.25 per step to its target 0.4 and stays; δ falls by 0.025 to -0.1142 and stays
-    np.testing.assert_allclose(commands[:, 0], [0.25, 0.4, 0.4, 0.4, 0.4, 0.4, 0.4, 0.4], atol=1e-12)
-    np.testing.assert_allclose(commands[:4, 1], [-0.025, -0.05, -0.075, -0.1], atol=1e-12)
-    np.testing.assert_allclose(commands[4:, 1], -0.2 * 0.571, atol=1e-12)
-    # Noise on the action jitters the command around its target instead of adding up: after 60 steps of noise
-    # around zero the command is within a few noise widths of zero, where increments drift as a random walk.
-    rng = np.random.default_rng(0)
-    noise = rng.normal(0.0, 0.3, (60, 2)).clip(-1, 1).astype(np.float32)
-
-    def final_command(**config):
-        env = make("DACERF-Multilane-v0", **config)
-        env.reset(seed=1)
-        action_type = env.unwrapped.action_type
-        for action in noise:  # the action type alone, without simulating: the ego does not move
-            action_type.act(action)
-        return action_type.command
-
-    target_mode = final_command(action_mode="target")
-    assert abs(target_mode[0]) <= 0.3 * 0.8 * 3 and abs(target_mode[1]) <= 0.3 * 0.571 * 3
-    assert abs(target_mode[1]) < abs(final_command(normalized_action=True)[1])
-
-
-def test_an_action_type_pickled_before_the_action_options_still_acts():
-    env = make("DACERF-Multilane-v0")
-    env.reset(seed=0)
-    action_type = env.unwrapped.action_type
-    for name in ("normalized", "mode", "steering_feedforward", "steering_residual"):
-        del action_type.__dict__[name]  # as unpickled from an older checkpoint
-    previous = action_type.command.copy()
-    env.step(np.array([0.25, 0.025], dtype=np.float32))
-    np.testing.assert_allclose(action_type.command - previous, [0.25, 0.025])
-
-
-def test_steering_feedforward_drives_a_turn_with_zero_actions():
-    """With the feedforward a zero action follows the path's curvature within the steering-rate bounds."""
-    env = gym.make("DACERF-Intersection-v0", density="sparse", config={"routes": ["right"], "steering_feedforward": True})
     unwrapped = env.unwrapped
-    obs, info = env.reset(seed=0)
-    action_type = unwrapped.action_type
-    assert action_type.steering_residual == pytest.approx(0.0, abs=1e-6)  # straight approach: nothing to add yet
-    steerings, done = [], False
-    while not done:
-        obs, _reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
-        assert abs(action_type.applied_increment[1]) <= 0.025 + 1e-12
-        assert obs[4] == pytest.approx(action_type.command[1], abs=1e-6)  # the observation has the applied steering
-        steerings.append(action_type.command[1])
-        done = terminated or truncated
-    assert info["is_success"] and not info["collision"]
-    assert max(np.abs(steerings)) > 0.1  # it did steer
-    # Without it the same zero actions drive straight on and never reach the right exit.
-    env = gym.make("DACERF-Intersection-v0", density="sparse", config={"routes": ["right"]})
+    unwrapped.road.vehicles = [unwrapped.vehicle]
+    return env, unwrapped
+
+
+def add_junction_vehicle(unwrapped, entry: int, exit_: int, before_line: float, speed: float) -> None:
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    lane = unwrapped.road.network.get_lane((f"o{entry}", f"ir{entry}", 0))
+    s = lane.length - before_line
+    vehicle = IDMVehicle(unwrapped.road, lane.position(s, 0.0), heading=lane.heading_at(s), speed=speed)
+    vehicle.plan_route_to(f"o{exit_}")
+    unwrapped.road.vehicles.append(vehicle)
+
+
+def test_reference_yields_at_the_stop_line_to_crossing_traffic():
+    env, unwrapped = lone_intersection("straight")
+    # 6 m before the line at 3 m/s: it can stop before the line (braking at most 0.8 m/s²)
+    unwrapped.vehicle.position, unwrapped.vehicle.speed = np.array([2.0, 11.0 + 2.5 + 6.0]), 3.0
+    assert unwrapped.reference_speed_cap() == np.inf  # nothing to yield to
+    # crossing traffic from the right arm (1), going straight on to arm 3, 10 m before its line at 8 m/s
+    add_junction_vehicle(unwrapped, 1, 3, before_line=10.0, speed=8.0)
+    cap = unwrapped.reference_speed_cap()
+    front_to_line = unwrapped.vehicle.position[1] - unwrapped.vehicle.LENGTH / 2 - 11.0
+    assert cap == pytest.approx(np.sqrt(2 * 0.5 * (front_to_line - 1.0)))
+    assert cap < unwrapped.reference_speed
+    # the observation's waypoints and the speed-tracking term follow the capped speed
+    scene = observe_scene(unwrapped)
+    assert scene.reference_speed == pytest.approx(cap)
+    _, _, _, _, info = env.step(np.zeros(2, dtype=np.float32))
+    assert info["reference_speed"] < info["target_speed"]
+    # traffic that has left the junction is no reason to wait
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    unwrapped.road.vehicles = [unwrapped.vehicle]
+    exit_lane = unwrapped.road.network.get_lane(("il3", "o3", 0))
+    leaving = IDMVehicle(unwrapped.road, exit_lane.position(5.0, 0.0), heading=exit_lane.heading_at(5.0), speed=8.0)
+    unwrapped.road.vehicles.append(leaving)
+    assert unwrapped.reference_speed_cap() == np.inf
+    # a right turn does not meet oncoming traffic going straight on, but merges with the right arm's into its exit
+    env, unwrapped = lone_intersection("right")
+    unwrapped.vehicle.position, unwrapped.vehicle.speed = np.array([2.0, 11.0 + 2.5 + 6.0]), 3.0
+    add_junction_vehicle(unwrapped, 2, 0, before_line=10.0, speed=8.0)
+    assert unwrapped.reference_speed_cap() == np.inf
+    add_junction_vehicle(unwrapped, 1, 3, before_line=10.0, speed=8.0)
+    assert unwrapped.reference_speed_cap() < unwrapped.reference_speed
+    # an ego already in the junction is committed, and so is one too fast to stop before the line
+    env, unwrapped = lone_intersection("straight")
+    unwrapped.vehicle.speed = 3.0
+    unwrapped.vehicle.position = np.array([2.0, 5.0])
+    add_junction_vehicle(unwrapped, 1, 3, before_line=10.0, speed=8.0)
+    assert unwrapped.reference_speed_cap() == np.inf
+    unwrapped.vehicle.position, unwrapped.vehicle.speed = np.array([2.0, 25.0]), 8.0  # 30 m to stop, 11.5 m left
+    assert unwrapped.reference_speed_cap() == np.inf
+    # off: the paper's reference
+    env = gym.make("DACERF-Intersection-v0", config={"yield_at_junction": False})
     env.reset(seed=0)
-    done = False
-    while not done:
-        _obs, _reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
-        done = terminated or truncated
-    assert not info["is_success"]
+    assert env.unwrapped.reference_speed_cap() == np.inf
 
 
-def test_steering_feedforward_adds_the_policy_residual():
-    env = make("DACERF-Intersection-v0", routes=["straight"], steering_feedforward=True)
-    env.reset(seed=0)
-    action_type = env.unwrapped.action_type
-    for _ in range(4):
-        env.step(np.array([0.0, 0.025], dtype=np.float32))
-    # Straight approach, feedforward 0: the residual and the steering integrate Δδ as without the feedforward.
-    assert action_type.steering_residual == pytest.approx(0.1)
-    assert action_type.command[1] == pytest.approx(0.1)
+@pytest.mark.slow
+@pytest.mark.parametrize("density", ["sparse", "normal", "dense"])
+def test_standing_is_no_refuge_at_the_intersection(density):
+    """Under the default reward, standing is worth less than the scripted driver on every route (γ = 0.99)."""
+    import importlib.util
 
+    path = os.path.join(os.path.dirname(__file__), os.pardir, "benchmarks", "standing_value.py")
+    spec = importlib.util.spec_from_file_location("standing_value", path)
+    standing_value = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, os.path.dirname(path))
+    spec.loader.exec_module(standing_value)
+    from sb3_dacerf.envs.driving.intersection import DEFAULT_ROUTES
 
-def test_steering_feedforward_changes_nothing_on_the_straight_highway():
-    def drive(**config):
-        env = make("DACERF-Multilane-v0", **config)
-        env.reset(seed=5)
-        rng = np.random.default_rng(0)
-        return [env.step((rng.uniform(-1, 1, 2) * [0.2, 0.02]).astype(np.float32))[0] for _ in range(20)]
-
-    np.testing.assert_allclose(drive(steering_feedforward=True), drive(), atol=1e-9)
+    for route in DEFAULT_ROUTES:
+        summary = standing_value.main(["--episodes", "4", "--density", density, "--config", json.dumps({"routes": [route]})])
+        row = summary[density, route]
+        assert row["scripted"] > row["standing"], (density, route, row)
 
 
 def test_intersection_wrong_exit_is_no_success():
@@ -737,7 +679,6 @@ def test_bad_kwargs_raise_clear_errors():
         ("DACERF-Multilane-v0", {"collision_penalty": "big"}, r"config\['collision_penalty'\]"),
         ("DACERF-Multilane-v0", {"huber_delta": 0}, r"config\['huber_delta'\] must be a number > 0"),
         ("DACERF-Multilane-v0", {"safe_space_margin": [3.0]}, r"config\['safe_space_margin'\] must be a pair"),
-        ("DACERF-Multilane-v0", {"action_mode": "targets"}, r"config\['action_mode'\] must be one of \['increment', 'target'\]"),
         ("DACERF-Multilane-v0", {"render_agent": "yes"}, r"config\['render_agent'\] must be True or False"),
         ("DACERF-Intersection-v0", {"spawn_probability": 1.5}, r"config\['spawn_probability'\] must be a number >= 0 and <= 1"),
         ("DACERF-Intersection-v0", {"routes": "left"}, r"config\['routes'\] must be a non-empty list"),
@@ -820,7 +761,14 @@ def left_turn_against_oncoming_car(driver_class, longitudinal: float, **driver_k
     """
     from highway_env.vehicle.behavior import IDMVehicle
 
-    env = make("DACERF-Intersection-v0", duration=40, routes=["left"], initial_vehicle_count=0, spawn_probability=0.0)
+    env = make(
+        "DACERF-Intersection-v0",
+        duration=40,
+        routes=["left"],
+        initial_vehicle_count=0,
+        spawn_probability=0.0,
+        yield_at_junction=False,
+    )
     obs, _ = env.reset(seed=0)
     unwrapped = env.unwrapped
     oncoming = IDMVehicle.make_on_lane(unwrapped.road, ("o2", "ir2", 0), longitudinal=longitudinal, speed=8.0)
@@ -853,7 +801,7 @@ def test_junction_driver_takes_only_the_intersection():
 
 
 def test_travel_time():
-    from sb3_dacerf.envs.driving.scripted import travel_time
+    from sb3_dacerf.envs.driving.intersection import travel_time
 
     # From 2 m/s at 1 m/s² up to 4 m/s: 6 m in 2 s while accelerating, then 4 m/s; negative distances take no time
     np.testing.assert_allclose(travel_time(np.array([-1.0, 0.0, 2.5, 6.0, 10.0]), 2.0, 1.0, 4.0), [0, 0, 1, 2, 3])
@@ -862,7 +810,7 @@ def test_travel_time():
 
 
 # The checkers' advice, expected here: the waypoints' positions in the observation have no finite bound, and the
-# default action space is the paper's increments in their units (normalized_action=True gives Box(-1, 1))
+# action space is the paper's increments in their units (SB3 rescales a Box's bounds to [-1, 1] itself)
 @pytest.mark.filterwarnings("ignore:.*A Box observation space m(in|ax)imum value is -?infinity")
 @pytest.mark.filterwarnings("ignore:.*For Box action spaces, we recommend using a symmetric and normalized space")
 @pytest.mark.filterwarnings("ignore:We recommend you to use a symmetric and normalized Box action space")
@@ -949,8 +897,8 @@ PINNED_EPISODES_PATH = os.path.join(os.path.dirname(__file__), "data", "driving_
 PINNED_PENALTY = {"collision_penalty": 200.0}
 # Likewise the intersection keeps highway-env's behaviour under which its pins were recorded: the wrecks of
 # traffic-only crashes, lane priorities for the ego too, and routes drawn among all four; clear_crashed_traffic,
-# right_of_way and the default routes have their own tests.
-PINNED_WRECKS = {"clear_crashed_traffic": False, "right_of_way": "priority"}
+# right_of_way, the yielding reference and the default routes have their own tests.
+PINNED_WRECKS = {"clear_crashed_traffic": False, "right_of_way": "priority", "yield_at_junction": False}
 ALL_ROUTES = {"routes": ["straight", "left", "right", "u_turn"]}
 PINNED_EPISODES = [
     # (env id, density, config overrides, seed, action pattern)

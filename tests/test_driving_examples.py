@@ -119,15 +119,14 @@ def test_evaluate_the_scripted_driver(capsys):
     assert "pass a model .zip to evaluate" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("config", [{}, {"normalized_action": True, "steering_feedforward": True}])
-def test_evaluate_zero_increments(capsys, config):
+def test_evaluate_zero_increments(capsys):
     evaluate = load_example("evaluate_driving")
-    args = ["--idle", "--env", "intersection", "--episodes", "2", "--config", json.dumps({**SHORT, **config})]
+    args = ["--idle", "--env", "intersection", "--episodes", "2", "--config", json.dumps(SHORT)]
     results = evaluate.main(args)
     assert capsys.readouterr().out.startswith("Zero increments; DACERF-Intersection-v0 (normal), seeds 10000-10001")
     assert results["episode_length"] >= 1 and evaluate.main(args) == results
-    # The same episodes as an env stepped with zero increments by hand (the normalised action's zero is zero too).
-    env = gym.make("DACERF-Intersection-v0", config={**SHORT, **config})
+    # The same episodes as an env stepped with zero increments by hand
+    env = gym.make("DACERF-Intersection-v0", config=SHORT)
     total = 0.0
     for seed in (10_000, 10_001):
         env.reset(seed=seed)
@@ -250,50 +249,6 @@ def test_zero_empty_rows_changes_only_the_empty_rows(trained, capsys):
     with pytest.raises(SystemExit):
         evaluate.main(["--scripted", "--env", "multilane", "--zero-empty-rows"])
     assert "--zero-empty-rows changes a model's normalised observations" in capsys.readouterr().err
-
-
-def test_density_diagnosis_reads_the_statistics_and_changes_the_observation():
-    """benchmarks/driving_density.py: the shipped multi-lane driver's statistics, and the observation changes."""
-    import torch
-
-    torch.set_num_threads(1)
-    diagnosis = load_example("driving_density", BENCHMARKS)
-    driver = diagnosis.load_driver(os.path.join(EXAMPLES, "models", "dacerf_multilane"))
-    table = diagnosis.statistics_table(driver.vec_normalize, (45, 8, 6)).splitlines()
-    assert len(table) == 10 and table[2].startswith("| 1 | 100.0% | -10.0 | -10.0 |")  # row 1 always filled, clipped
-    driver.config = {**driver.config, "duration": 2}
-    nearest = diagnosis.run(driver, "normal", 4, False, 1, 77_000)
-    assert nearest["vehicles_mean"] == 4 and nearest["clipped"] > 0
-    zeroed = diagnosis.run(driver, "normal", 4, True, 1, 77_000)
-    assert zeroed["vehicles_mean"] == 4 and zeroed["clipped"] == 0
-    low, mean, high = zeroed["reference_speed"]
-    assert 0 < low <= mean <= high
-
-
-def test_collision_floor_brakes_at_the_limit_and_describes_the_collision(capsys):
-    """benchmarks/driving_collision_floor.py: a dense multi-lane episode the braking ego does not survive."""
-    floor = load_example("driving_collision_floor", BENCHMARKS)
-    env = gym.make("DACERF-Multilane-v0")
-    driver = floor.BrakingDriver(env)
-    obs, _ = env.reset(seed=0)
-    for _ in range(3):
-        obs, *_ = env.step(driver(obs))
-    assert env.unwrapped.action_type.command[0] == pytest.approx(env.unwrapped.config["acceleration_range"][0])
-    result = floor.run("DACERF-Multilane-v0", "dense", True, 1, 40_004)
-    assert result["collision_rate"] == 1.0 and len(result["collisions"]) == 1
-    collision = result["collisions"][0]
-    assert collision["ahead"] and 0 < collision["time"] < 10 and collision["closing_speed"] > 0
-    assert collision["other_braking"] > 0.8  # the vehicle ahead braked harder than the ego can
-    # Seed 40,019: the ego starts in lane 1 with its reference in lane 2; braking into lane 0 from the start wins.
-    assert floor.run("DACERF-Multilane-v0", "dense", True, 1, 40_019)["collision_rate"] == 1.0
-    dense = gym.make("DACERF-Multilane-v0", density="dense")
-    assert floor.evasion(dense, 40_019) == (0, 0, False)
-    floor.main(["--env", "multilane", "--densities", "sparse", "--episodes", "1"])
-    row = capsys.readouterr().out.splitlines()[2]
-    assert row.startswith("| multilane | sparse | 100%, 0% | 100%, 0% | —") and row.endswith("| — | 0% |")
-    with pytest.raises(SystemExit):
-        floor.main(["--densities", "heavy"])
-    assert "--densities 'heavy'" in capsys.readouterr().err
 
 
 def test_evaluate_errors_name_the_problem(trained, tmp_path):

@@ -87,57 +87,6 @@ def test_vec_normalize_statistics_travel_with_the_checkpoint(tmp_path, learning_
     assert all(-3300 < row["mean_return"] <= 0 for row in resumed)
 
 
-def test_langevin_scale_reports_a_checkpoint(tmp_path, learning_curves, capsys):
-    """benchmarks/langevin_scale.py reads a run's checkpoint; below a mean |∇_a Q| of 1 both updates agree."""
-    learning_curves.run_one(job(tmp_path, "dacerf", 100))
-    capsys.readouterr()  # the run's own lines
-    spec = importlib.util.spec_from_file_location("langevin_scale", BENCHMARKS / "langevin_scale.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.main([str(learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", "dacerf", 3)), "--batch-size", "64"])
-    line = capsys.readouterr().out.strip()
-    assert line.startswith("Pendulum-v1 dacerf-seed3 at 100 steps | mean |Q|")
-    paper, normalised = line.split(" | ")[4:6]
-    # a critic trained for 50 updates has small action gradients: the normalisation divides by 1
-    assert paper.removeprefix("paper: ") == normalised.removeprefix("normalised: ").split(" (a_B")[0]
-    with pytest.raises(SystemExit):
-        module.main([str(tmp_path)])
-
-
-def test_final_policy_reports_the_models_of_finished_runs(tmp_path, learning_curves, capsys):
-    """benchmarks/final_policy.py: returns of unseen episodes, rewarded replay steps, the critic where episodes settle."""
-    import gymnasium as gym
-
-    from sb3_dacerf import DACERF
-
-    for variant in ("dacerf", "sac"):
-        learning_curves.run_one(job(tmp_path, variant, 100))
-    capsys.readouterr()  # the runs' own lines
-    spec = importlib.util.spec_from_file_location("final_policy", BENCHMARKS / "final_policy.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    folders = [learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", variant, 3) for variant in ("dacerf", "sac")]
-    module.main([*map(str, folders), "--episodes", "1", "--critic-episodes", "1", "--settle", "5", "--high=-1e9"])
-    dacerf_lines, sac_lines = (block.splitlines() for block in capsys.readouterr().out.split("Pendulum-v1 ")[1:])
-    assert dacerf_lines[0] == "dacerf-seed3 at 100 steps" and sac_lines[0] == "sac-seed3 at 100 steps"
-
-    # the deterministic episode is the model's own on reset seed 50,000
-    model, env = DACERF.load(folders[0] / "model.zip", device="cpu"), gym.make("Pendulum-v1")
-    obs, _ = env.reset(seed=50_000)
-    total, done = 0.0, False
-    while not done:
-        obs, reward, terminated, truncated, _ = env.step(model.predict(obs, deterministic=True)[0])
-        total, done = total + float(reward), terminated or truncated
-    assert dacerf_lines[1] == f"  episodes (deterministic): mean {total:.1f}, above -1e+09 in 1/1, below 100 in 1/1"
-    # Pendulum's rewards are all negative: no rewarded replay step in the one (partial) 10k block
-    assert dacerf_lines[3] == "  replay: share of steps with reward > 0 per 10k steps: 0.000"
-    # a 1-D action space gets the grid; only DACERF has Langevin targets
-    assert "grid max Q" in dacerf_lines[4] and "Langevin mean move" in dacerf_lines[4]
-    assert "grid max Q" in sac_lines[4] and "Langevin" not in sac_lines[4]
-    with pytest.raises(SystemExit, match=r"is not a checkpoint of learning_curves\.py"):
-        module.main([str(tmp_path)])
-
-
 def test_training_env_kwargs_apply_to_training_only(tmp_path, learning_curves):
     """--train-env-kwargs: merged over --env-kwargs, config key by config key, in the training env only."""
     from stable_baselines3 import SAC
@@ -321,22 +270,3 @@ def test_regime_options_refuse_what_does_not_fit(tmp_path, learning_curves, monk
         learning_curves.main()
     assert re.search(message, capsys.readouterr().err)
     assert not (tmp_path / "x").exists()
-
-
-def test_data_regime_measures_both_axes(capsys):
-    """benchmarks/data_regime.py: S environment steps per gradient step, counted and timed apart."""
-    spec = importlib.util.spec_from_file_location("data_regime", BENCHMARKS / "data_regime.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    rows = module.main(["--quick", "--variant", "sac", "--steps-per-gradient", "1", "4"])
-    assert [(row["env_steps"], row["gradient_steps"]) for row in rows] == [(40, 40), (160, 40)]
-    for row, steps in zip(rows, (1, 4), strict=True):
-        assert row["budget_env_steps"] == pytest.approx(row["budget_gradient_steps"] * steps)
-    assert "| 4 | 160 | 40 |" in capsys.readouterr().out
-    for argv, message in (
-        (["--variant", "dacerf-utd2"], "sets ['gradient_steps'] itself"),
-        (["--steps-per-gradient", "2.5"], "whole"),
-    ):
-        with pytest.raises(SystemExit):
-            module.main(["--quick", *argv])
-        assert message in capsys.readouterr().err

@@ -16,9 +16,17 @@ the corners are markings; the U-turn crosses them).
 Target speed from ``reference_speed_ranges`` of the route (straight 6-9 m/s, left 4-7, right 3-5,
 U-turn 3-4.5: the steering rate is limited to 0.25 rad/s); random start 20-40 m before the junction
 with small lateral and heading offsets (for training, ``reference_start_probability`` starts a share of the episodes
-on the path anywhere up to the exit lane: exploring starts). ``density`` sets the initial vehicle count and the spawn
-probability per step (sparse 5 / 0.03, normal 10 / 0.06 = highway-env's default rate of 0.6 per second,
-dense 15 / 0.12).
+on the path anywhere up to 15 m into the exit lane, as the paper's ego drawn from the traffic flow). ``density`` sets
+the initial vehicle count and the spawn probability per step (sparse 5 / 0.03, normal 10 / 0.06 = highway-env's
+default rate of 0.6 per second, dense 15 / 0.12).
+
+Reward: the paper's terms (:mod:`.common.reward`) with two choices where the paper leaves room. The severe-event
+penalty is the paper's constant 200 (Markov: it does not depend on the time left, which the observation lacks), and
+with ``yield_at_junction`` (default) the reference speed yields at the stop line to traffic whose crossing overlaps
+the ego's (:meth:`IntersectionEnv.reference_speed_cap`), so that the order of values is: crossing safely, then waiting
+for a gap (nearly free), then a crash (-200), then standing without a reason (the target speed's tracking cost, 6-24
+per step, about -600 to -950 discounted at γ = 0.99). The yielding speed is in the observation through the waypoint
+spacing.
 
 The episode ends on a collision, when the ego's centre leaves the road, or when it has driven
 25 m into any exit lane (``info["is_success"]`` is true only for the route's exit); it is truncated
@@ -92,6 +100,62 @@ def u_turn_points(start: np.ndarray, heading: float, turn_sign: float, step: flo
     return np.concatenate([*points, [position]]), np.concatenate([*headings, [psi]])
 
 
+def travel_time(distance: np.ndarray, speed: float, acceleration: float, max_speed: float) -> np.ndarray:
+    """
+    Time [s] to cover ``distance`` [m] from ``speed``, accelerating at ``acceleration`` up to ``max_speed`` [m/s].
+
+    :param distance: distances (negative ones count as 0)
+    :param speed: initial speed, >= 0
+    :param acceleration: > 0
+    :param max_speed: the speed kept once reached (the initial speed if it is higher)
+    """
+    distance = np.maximum(np.asarray(distance, dtype=np.float64), 0.0)
+    max_speed = max(max_speed, speed, 1e-6)
+    t_accelerating = (max_speed - speed) / acceleration
+    d_accelerating = speed * t_accelerating + 0.5 * acceleration * t_accelerating**2
+    while_accelerating = (np.sqrt(speed**2 + 2 * acceleration * distance) - speed) / acceleration
+    return np.where(distance <= d_accelerating, while_accelerating, t_accelerating + (distance - d_accelerating) / max_speed)
+
+
+def turn_conflicts(network, ego_exit: int, conflict_distance: float = 3.1, step: float = 0.5) -> dict:
+    """
+    Where the ego's turn from arm 0 to ``ego_exit`` meets each traffic turn of the junction, on their centre lines.
+
+    Each path is the turn lane ``ir{a} -> il{b}`` and the first 10 m of its exit lane (so that two turns into the same
+    exit meet where they merge), sampled every ``step`` metres.
+
+    :param network: the junction's road network (highway-env's ``IntersectionEnv``)
+    :param ego_exit: the arm the ego leaves by (1, 2 or 3)
+    :param conflict_distance: centre-line distance counted as a conflict [m]
+    :param step: sampling interval [m]
+    :return: ``{(a, b): (ego_in, ego_out, traffic_in, traffic_out)}``: for each traffic turn from arm ``a`` (not 0)
+        to arm ``b`` that conflicts, the arc lengths [m] from each turn lane's start where the conflict begins and ends
+    """
+
+    def path(entry: int, exit_: int) -> np.ndarray:
+        turn, exit_lane = network.get_lane((f"ir{entry}", f"il{exit_}", 0)), network.get_lane((f"il{exit_}", f"o{exit_}", 0))
+        along = [turn.position(s, 0.0) for s in np.arange(0.0, turn.length, step)]
+        return np.array(along + [exit_lane.position(s, 0.0) for s in np.arange(0.0, 10.0, step)])
+
+    ego = path(0, ego_exit)
+    conflicts = {}
+    for entry in (1, 2, 3):
+        for exit_ in range(4):
+            if exit_ == entry:
+                continue
+            other = path(entry, exit_)
+            close = np.linalg.norm(ego[:, None] - other[None], axis=-1) < conflict_distance
+            ego_index, other_index = np.nonzero(close)
+            if len(ego_index):
+                conflicts[entry, exit_] = (
+                    step * ego_index.min(),
+                    step * ego_index.max(),
+                    step * other_index.min(),
+                    step * other_index.max(),
+                )
+    return conflicts
+
+
 def _routes_rule(value: object) -> str | None:
     if isinstance(value, (list, tuple)) and value and all(isinstance(route, str) and route in ROUTES for route in value):
         return None
@@ -147,8 +211,13 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         "clear_crashed_traffic": boolean(),
         "reference_start_probability": number(0.0, 1.0),
         "right_of_way": choice(RIGHT_OF_WAY),
+        "yield_at_junction": boolean(),
     }
     TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset({"reference_start_probability"})
+    YIELD_DECELERATION = 0.5
+    """Deceleration [m/s²] of the yielding reference's stop at the line (the ego can brake at 0.8)."""
+    YIELD_MARGIN = 1.0
+    """Widening [s] of a traffic vehicle's time window at a conflict (``reference_speed_cap``)."""
     EXIT_DISTANCE = 25.0
     """Distance driven into an exit lane that ends the episode [m] (highway-env's ``has_arrived``)."""
 
@@ -172,9 +241,17 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 # ahead (traffic behind the ego yields to it); "priority", highway-env's lane priorities (the
                 # horizontal road first: crossing traffic never yields to the ego, which comes from a minor arm).
                 "right_of_way": "first_come",
-                # Training aid (exploring starts), 0 for evaluation: the probability that an episode starts on the
-                # reference path anywhere from 20 m before the junction to the exit lane, heading along the path
-                # with the steering of its curvature, instead of 20-40 m before the junction.
+                # The reference speed yields at the stop line to junction traffic whose crossing overlaps the ego's
+                # (reference_speed_cap): waiting for a gap costs nothing, standing without a reason costs the target
+                # speed's tracking term. False: the route's target speed throughout (the paper's reference).
+                "yield_at_junction": True,
+                # The paper's constant severe-event penalty: Markov, and with the yielding reference, a crash costs
+                # more than waiting for a gap while standing without a reason costs more than both
+                "collision_penalty": 200.0,
+                # Training aid (starts from the traffic flow), 0 for evaluation: the probability that an episode
+                # starts on the reference path anywhere from 20 m before the junction to 10 m before the exit distance
+                # (inside and past the junction too), heading along the path with the steering of its curvature,
+                # instead of 20-40 m before the junction.
                 "reference_start_probability": 0.0,
             }
         )
@@ -214,6 +291,8 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     def _make_vehicles(self, n_vehicles: int = 10) -> None:
         """Spawn and warm up the traffic as highway-env does, then create the ego, its route and reference."""
         config, rng, network = self.config, self.np_random, self.road.network
+        if not hasattr(self, "_conflicts"):  # the junction is the same in every episode
+            self._conflicts = {arm: turn_conflicts(network, arm) for arm in (1, 2, 3)}
         for longitudinal in np.linspace(0, 80, config["initial_vehicle_count"])[:-1]:
             self._spawn_vehicle(longitudinal)
         for _ in range(3 * config["simulation_frequency"]):  # 3 s of traffic so that it is flowing
@@ -252,9 +331,9 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         position, heading = approach.position(start, lateral), approach.heading_at(start) + heading_offset
         steering = 0.0
         if config["reference_start_probability"] > 0 and rng.uniform() < config["reference_start_probability"]:
-            # Exploring start: anywhere from 20 m before the junction to the start of the exit lane, on the reference
-            # path with the path's heading and the steering that follows its curvature.
-            end = self.reference.project(exit_lane.position(0.0, 0.0))[0]
+            # Start from the traffic flow: anywhere from 20 m before the junction to 10 m before the exit distance,
+            # on the reference path with the path's heading and the steering that follows its curvature.
+            end = self.reference.project(exit_lane.position(self.EXIT_DISTANCE - 10.0, 0.0))[0]
             points, headings, curvatures = self.reference.at(np.array([rng.uniform(approach.length - 20.0, end)]))
             normal = np.array([-np.sin(headings[0]), np.cos(headings[0])])
             position, heading = points[0] + lateral * normal, float(headings[0]) + heading_offset
@@ -266,6 +345,52 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         self.road.vehicles.append(ego)
         # Prevent collisions at the start, as highway-env does.
         self.road.vehicles = [v for v in self.road.vehicles if v is ego or np.linalg.norm(v.position - ego.position) >= 20]
+
+    def reference_speed_cap(self) -> float:
+        """
+        The speed [m/s] from which the ego stops at the stop line, braking at ``YIELD_DECELERATION``, while it must
+        yield; ``inf`` otherwise (``yield_at_junction`` off, a U-turn, an ego already in the junction or one that can no
+        longer stop before it).
+
+        The ego must yield when the time window in which a traffic vehicle occupies a conflict of their paths
+        (:func:`turn_conflicts`) overlaps the ego's own at that conflict. The traffic vehicle is predicted along its
+        planned route: it arrives no earlier than accelerating at 3 m/s² up to 9 m/s and leaves no later than at
+        2 m/s, each widened by ``YIELD_MARGIN``; the ego arrives accelerating at 0.7 m/s² from its speed up to its
+        target speed, and its body occupies 3 m before and after the conflict.
+        """
+        if not self.config["yield_at_junction"] or self.route == "u_turn":
+            return np.inf
+        ego = self.vehicle
+        front_to_line = float(ego.position[1]) - ego.LENGTH / 2 - JUNCTION_HALF_SIZE
+        braking = -self.config["acceleration_range"][0]
+        if front_to_line <= -0.5 or ego.speed**2 / (2 * braking) > front_to_line + 0.5:
+            return np.inf  # in the junction, or committed to it
+        conflicts = self._conflicts[ROUTES[self.route]]
+        to_turn = float(ego.position[1]) - JUNCTION_HALF_SIZE  # from the ego's centre to the start of its turn lane
+        for vehicle in self.road.vehicles:
+            if vehicle is ego:
+                continue
+            lane_index = vehicle.lane_index
+            turn = next((lane for lane in (lane_index, *(vehicle.route or ())) if lane[0].startswith("ir")), None)
+            if turn is None or (int(turn[0][2:]), int(turn[1][2:])) not in conflicts:
+                continue
+            ego_in, ego_out, traffic_in, traffic_out = conflicts[int(turn[0][2:]), int(turn[1][2:])]
+            s = vehicle.lane.local_coordinates(vehicle.position)[0]
+            if lane_index[0] == turn[0]:
+                to_conflict = traffic_in - s
+            elif lane_index[1] == turn[0]:
+                to_conflict = vehicle.lane.length - s + traffic_in
+            else:
+                continue
+            arrives = float(travel_time(to_conflict - vehicle.LENGTH / 2, vehicle.speed, 3.0, 9.0)) - self.YIELD_MARGIN
+            leaves = (to_conflict + traffic_out - traffic_in + vehicle.LENGTH / 2) / max(vehicle.speed, 2.0) + self.YIELD_MARGIN
+            if leaves <= 0:
+                continue
+            enters = float(travel_time(to_turn + ego_in - ego.LENGTH / 2 - 3.0, ego.speed, 0.7, self.reference_speed))
+            exits = float(travel_time(to_turn + ego_out + ego.LENGTH / 2 + 3.0, ego.speed, 0.7, self.reference_speed))
+            if enters < leaves and arrives < exits:
+                return float(np.sqrt(2 * self.YIELD_DECELERATION * max(front_to_line - 1.0, 0.0)))
+        return np.inf
 
     def _spawn_vehicle(self, longitudinal: float = 0, *args, **kwargs):
         """highway-env's spawner, with its IDM settings for junctions set per vehicle instead of on the class."""

@@ -2,8 +2,7 @@
 A scripted driver for the paper's driving scenarios: a baseline to compare learnt policies with, and the "competent
 driver" of the reward audit (``benchmarks/driving_reward_audit.py``).
 
-It reads only the observation (and the env's config for the scales, the action bounds and the ego's length, and with
-the env's ``steering_feedforward`` the feedforward it steers on top of): pure
+It reads only the observation (and the env's config for the scales, the action bounds and the ego's length): pure
 pursuit on the observed reference waypoints, a speed controller towards the target speed encoded in the waypoint
 spacing, braking for the nearest vehicle in its corridor ahead and, with ``yield_to_crossing=True``, braking for
 any vehicle whose constant-velocity prediction meets the ego's path within ``horizon`` seconds (crossing and
@@ -28,9 +27,6 @@ buffer (demonstrations).
 
 from __future__ import annotations
 
-import warnings
-from typing import Any
-
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
@@ -38,7 +34,7 @@ from gymnasium import spaces
 from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
-from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv
+from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv, travel_time
 
 
 class ScriptedDriver:
@@ -80,9 +76,7 @@ class ScriptedDriver:
         # The waypoint spacing is the target speed times the waypoint interval.
         reference_speed = float(np.hypot(*(waypoints[1, :2] - waypoints[0, :2])) / self.waypoint_interval)
         desired = np.array([self._acceleration(waypoints, vehicles, v_x, reference_speed), self._steering(waypoints, v_x)])
-        action_type = self._unwrapped.action_type
-        feedforward = self._unwrapped._steering_feedforward() if action_type.steering_feedforward is not None else None
-        return action_type.command_action(desired, feedforward).astype(np.float32)
+        return self._unwrapped.action_type.command_action(desired).astype(np.float32)
 
     def _steering(self, waypoints: np.ndarray, v_x: float) -> float:
         """Pure pursuit: the front-wheel angle towards the waypoint ~0.8 s of travel (at least 4 m) ahead."""
@@ -118,23 +112,6 @@ class ScriptedDriver:
             if np.min(np.hypot(*(other - ego).T)) < self.conflict_distance:
                 return True
         return False
-
-
-def travel_time(distance: np.ndarray, speed: float, acceleration: float, max_speed: float) -> np.ndarray:
-    """
-    Time [s] to cover ``distance`` [m] from ``speed``, accelerating at ``acceleration`` up to ``max_speed`` [m/s].
-
-    :param distance: distances (negative ones count as 0)
-    :param speed: initial speed, >= 0
-    :param acceleration: > 0
-    :param max_speed: the speed kept once reached (the initial speed if it is higher)
-    """
-    distance = np.maximum(np.asarray(distance, dtype=np.float64), 0.0)
-    max_speed = max(max_speed, speed, 1e-6)
-    t_accelerating = (max_speed - speed) / acceleration
-    d_accelerating = speed * t_accelerating + 0.5 * acceleration * t_accelerating**2
-    while_accelerating = (np.sqrt(speed**2 + 2 * acceleration * distance) - speed) / acceleration
-    return np.where(distance <= d_accelerating, while_accelerating, t_accelerating + (distance - d_accelerating) / max_speed)
 
 
 class JunctionDriver(ScriptedDriver):
@@ -300,19 +277,3 @@ class JunctionDriver(ScriptedDriver):
 
 DEMONSTRATORS: dict[str, type[ScriptedDriver]] = dict(zip(DEMONSTRATOR_NAMES, (ScriptedDriver, JunctionDriver), strict=True))
 """The drivers by the names the command-line tools give them."""
-
-
-def __getattr__(name: str) -> Any:
-    """``add_scripted_transitions``, which moved to :mod:`sb3_dacerf.common.demonstrations`, with a deprecation warning."""
-    if name == "add_scripted_transitions":
-        warnings.warn(
-            "sb3_dacerf.envs.driving.scripted.add_scripted_transitions moved to "
-            "sb3_dacerf.common.demonstrations.add_scripted_transitions (the environments import nothing from the "
-            "algorithms): import it from there; this alias will be removed",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        from sb3_dacerf.common.demonstrations import add_scripted_transitions
-
-        return add_scripted_transitions
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -18,7 +18,7 @@ from highway_env.envs.common.graphics import EnvViewer
 from sb3_dacerf.envs.driving.common.action import IncrementalAction
 from sb3_dacerf.envs.driving.common.config import COMMON_RULES, Rule, check_config
 from sb3_dacerf.envs.driving.common.observation import EgoFrameObservation, Scene, observe_scene
-from sb3_dacerf.envs.driving.common.reference import ReferencePath, nominal_steering
+from sb3_dacerf.envs.driving.common.reference import ReferencePath
 from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, reward_terms
 from sb3_dacerf.envs.driving.density import DensitySpec, density_weights
 
@@ -160,15 +160,6 @@ class PaperDrivingMixin(_HighwayEnv):
                 # False: the paper's constant target speed per episode; True: capped by what the vehicle ahead allows
                 # (observation.traffic_following_speed)
                 "reference_speed_follows_traffic": False,
-                # False: the paper's action; True: Δδ steers on top of the nominal steering of the path
-                # steering_feedforward_preview [s] of travel ahead (action.IncrementalAction)
-                "steering_feedforward": False,
-                "steering_feedforward_preview": 0.5,
-                # False: the paper's raw increment bounds as the action space; True: Box(-1, 1), zero at its centre
-                "normalized_action": False,
-                # "increment": the paper's action [Δa_x, Δδ]; "target": the action is the command [a_x, δ] (in
-                # Box(-1, 1)) that the command moves towards within the increment bounds (action.IncrementalAction)
-                "action_mode": "increment",
                 "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
                 "boundary_threshold": 0.5,  # d_thresh [m]
                 # Severe events (collision, leaving the road): "dynamic" (see _severe_penalty) or a constant (paper: 200)
@@ -234,17 +225,11 @@ class PaperDrivingMixin(_HighwayEnv):
             steering_increment_range=config["steering_increment_range"],
             acceleration_range=config["acceleration_range"],
             steering_range=config["steering_range"],
-            normalized=config["normalized_action"],
-            mode=config["action_mode"],
         )
         # The command an episode starts with: no acceleration and the ego's steering (zero, or the path's steering of
         # an exploring start inside a turn, reference_start_probability).
         if self.controlled_vehicles:
             self.action_type.command[1] = self.controlled_vehicles[0].action["steering"]
-            if config["steering_feedforward"]:
-                # The residual that keeps the steering the episode starts with.
-                self.action_type.steering_feedforward = self._steering_feedforward()
-                self.action_type.steering_residual = float(self.action_type.command[1]) - self.action_type.steering_feedforward
         # highway-env rebuilds the spaces on every reset; keeping ours keeps any seed set on them.
         if self.observation_space is None or self.observation_space.shape != self.observation_type.space().shape:
             self.observation_space = self.observation_type.space()
@@ -264,17 +249,6 @@ class PaperDrivingMixin(_HighwayEnv):
         self.vehicle.MIN_SPEED = 0.0
         self.scene = observe_scene(self)
         self._start_stall_history()
-
-    def _steering_feedforward(self) -> float:
-        """
-        The nominal steering [rad] of the reference path ``steering_feedforward_preview`` seconds of travel ahead of
-        the ego's projection (at its current speed): what the kinematic bicycle model needs to follow the path there.
-        The projection is the current scene's: the ego has not moved since it was computed.
-        """
-        ego = self.vehicle
-        s = self._current_scene().reference_progress
-        _, _, curvatures = self.reference.at(np.array([s + self.config["steering_feedforward_preview"] * ego.speed]))
-        return nominal_steering(float(curvatures[0]), ego.LENGTH)
 
     def _start_stall_history(self) -> None:
         """The ego's progress along its reference over the last ``stall_timeout`` seconds, from the current scene."""
@@ -303,8 +277,6 @@ class PaperDrivingMixin(_HighwayEnv):
             )
             self._warned_step_after_end = True
         self.time += 1 / self.config["policy_frequency"]
-        if self.config["steering_feedforward"]:
-            self.action_type.steering_feedforward = self._steering_feedforward()
         self._simulate(action)
         self.scene = observe_scene(self)
         self._progress.append(self.scene.reference_progress)
@@ -341,6 +313,10 @@ class PaperDrivingMixin(_HighwayEnv):
         ~250 per episode even for an ideal driver, and leaving the road (-200) was the better return in ~30% of them.
         """
         return max(self.reference_speed + self.np_random.normal(0.0, 0.5), 0.0)
+
+    def reference_speed_cap(self) -> float:
+        """The highest reference speed [m/s] the scenario allows in its current state: none (``inf``) by default."""
+        return np.inf
 
     def _road_clearance(self, position: np.ndarray) -> float:
         """Distance [m] from a position to the nearest road edge, negative off the road."""

@@ -58,6 +58,10 @@ class PerceivingEnv(Protocol):
     reference_speed: float
     """The episode's target speed [m/s]."""
 
+    def reference_speed_cap(self) -> float:
+        """The highest reference speed [m/s] the scenario allows in its current state (``inf``: the target speed)."""
+        ...
+
     @property
     def vehicle(self) -> Any:
         """The ego vehicle (highway-env's)."""
@@ -185,7 +189,7 @@ def observe_scene(env: PerceivingEnv) -> Scene:
         vehicles[:, 2], vehicles[:, 3], vehicles[:, 4:] = np.cos(relative), np.sin(relative), data[:, 3:]
 
     s, lateral = env.reference.project(ego.position)
-    reference_speed = env.reference_speed
+    reference_speed = min(env.reference_speed, env.reference_speed_cap())
     if config["reference_speed_follows_traffic"]:
         reference_speed = traffic_following_speed(
             reference_speed, vehicles, ego.LENGTH, ego.WIDTH, -config["acceleration_range"][0], config["safe_time_headway"]

@@ -14,10 +14,11 @@ Every signed term is in ``info["reward_terms"]``; their sum is the reward:
   edge (the paper's ``d_bound - d_thresh + 1.0`` read as a cost that starts ``d_thresh`` before the body touches
   the edge);
 - ``collision`` / ``off_road``: minus the severe-event penalty on a collision and on leaving the road, which end
-  the episode: by default this package's formula for the paper's "or dynamically calculated" (the paper gives
-  none), ``dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left`` (200 + 21 per step left
-  until the time limit), so that ending the episode early is never worth more than driving on;
-  ``collision_penalty=200`` selects the paper's constant (see ``PaperDrivingMixin._severe_penalty``);
+  the episode: the paper's constant 200 at the intersection (its default), and on the multi-lane highway this
+  package's formula for the paper's "or dynamically calculated" (the paper gives none),
+  ``dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left`` (200 + 21 per step left until the
+  time limit), so that ending the episode early is never worth more than driving on (see
+  ``PaperDrivingMixin._severe_penalty``);
 - ``stalled``: the same penalty when the ego has advanced less than ``stall_distance`` along its reference within the
   last ``stall_timeout`` seconds, which ends the episode (off by default: ``stall_timeout=0``).
 
