@@ -90,7 +90,7 @@ def test_checks_and_persistence_still_import_from_twin_critic():
     for name in twin_critic.__all__:
         home = persistence if hasattr(persistence, name) else validation if hasattr(validation, name) else twin_critic
         assert getattr(twin_critic, name) is getattr(home, name), name
-    assert {"NonFiniteLossError", "HyperparameterRule", "saved_policy_class", "check_action_space"} <= set(twin_critic.__all__)
+    assert {"NonFiniteLossError", "HyperparameterRule", "saved_algorithm_name", "check_action_space"} <= set(twin_critic.__all__)
     # What each part overrides of SB3's OffPolicyAlgorithm is what the algorithm runs
     parts = {"save": persistence.TwinCriticPersistence, "load": persistence.TwinCriticPersistence}
     parts.update(set_parameters=persistence.TwinCriticPersistence, predict=validation.TwinCriticChecks)
