@@ -10,6 +10,7 @@ and never unpickles it: the classes come from closed lists of known names, the t
 (:func:`save_vec_normalize`, :func:`load_vec_normalize`).
 """
 
+import hashlib
 import io
 import json
 import math
@@ -209,7 +210,7 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
             if force_reset:
                 data["_last_obs"] = None
             data["n_envs"] = env.num_envs
-        model = cls(policy=cls.policy_aliases[entry["policy"]], env=env, device=device, _init_setup_model=False)  # type: ignore[call-arg]
+        model = cls(policy=cls.policy_aliases[entry["policy"]], env=env, device=device, _init_setup_model=False)  # type: ignore[call-arg,arg-type]
         model.__dict__.update(data)
         model.__dict__.update(kwargs)
         model._setup_model()
@@ -241,7 +242,7 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
         """
         if isinstance(load_path_or_dict, (str, os.PathLike)):
             load_path_or_dict = _existing_zip(load_path_or_dict)
-        super().set_parameters(load_path_or_dict, exact_match=exact_match, device=device)
+        super().set_parameters(load_path_or_dict, exact_match=exact_match, device=device)  # type: ignore[arg-type]
 
     def _excluded_save_params(self) -> list[str]:
         return super()._excluded_save_params() + ["actor", "critic", "critic_target"]  # noqa: RUF005
@@ -497,7 +498,8 @@ def load_vec_normalize(path: str | os.PathLike, venv: VecEnv | None = None) -> V
     """
     try:
         encoded = json.loads(pathlib.Path(path).read_text())
-        cls = {"VecNormalize": VecNormalize, "MaskedVecNormalize": MaskedVecNormalize}[encoded["class"]]
+        classes: dict[str, type[VecNormalize]] = {"VecNormalize": VecNormalize, "MaskedVecNormalize": MaskedVecNormalize}
+        cls = classes[encoded["class"]]
         obs_rms = encoded["obs_rms"]
         state = {
             "observation_space": space_from_json(encoded["observation_space"]),
@@ -531,23 +533,93 @@ def load_vec_normalize(path: str | os.PathLike, venv: VecEnv | None = None) -> V
             f"{path} is not observation statistics written by sb3_dacerf's save_vec_normalize (JSON): "
             f"{type(error).__name__}: {error}"
         ) from None
-    normalizer = cls.__new__(cls)
+    normalizer: VecNormalize = object.__new__(cls)
     normalizer.__setstate__(state)  # what unpickling does, from the JSON's values
     if venv is not None:
         normalizer.set_venv(venv)
     return normalizer
 
 
+# Checksums of shipped files
+
+
+#: The checksum file of a folder of shipped models, in ``sha256sum``'s format (``<hex digest>  <file name>``)
+CHECKSUMS = "SHA256SUMS"
+
+
+def sha256(path: str | os.PathLike) -> str:
+    """The hex sha256 digest of a file."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_sha256sums(folder: str | os.PathLike) -> dict[str, str]:
+    """The ``SHA256SUMS`` of a folder as ``{file name: hex digest}``; empty when the folder has none."""
+    path = pathlib.Path(folder) / CHECKSUMS
+    if not path.is_file():
+        return {}
+    sums = {}
+    for line in path.read_text().splitlines():
+        digest, _, name = line.strip().partition("  ")
+        if name:
+            sums[name.lstrip("*")] = digest.lower()
+    return sums
+
+
+def check_sha256(path: str | os.PathLike) -> None:
+    """
+    Check a file against the ``SHA256SUMS`` of its folder, if that lists it (the shipped drivers of
+    ``examples/models/``); a file no ``SHA256SUMS`` lists is not checked.
+
+    :raises ValueError: the file's digest differs from the listed one, naming both
+    """
+    path = pathlib.Path(path)
+    expected = read_sha256sums(path.parent).get(path.name)
+    if expected is None:
+        return
+    actual = sha256(path)
+    if actual != expected:
+        raise ValueError(
+            f"{path} does not match its checksum in {path.parent / CHECKSUMS} (sha256 {actual}, listed {expected}): "
+            "the file was changed or corrupted; download it again (or, for a file you changed yourself, update "
+            f"{CHECKSUMS} with `sha256sum`)."
+        )
+
+
+def update_sha256sums(paths: list[str | os.PathLike]) -> None:
+    """Write the digests of ``paths`` into the ``SHA256SUMS`` of their folder, which must exist (others are kept)."""
+    for folder, names in _by_folder(paths).items():
+        sums = read_sha256sums(folder)
+        sums.update({name: sha256(folder / name) for name in names})
+        with atomic_path(folder / CHECKSUMS) as temporary:
+            temporary.write_text("".join(f"{digest}  {name}\n" for name, digest in sorted(sums.items())))
+
+
+def _by_folder(paths: list[str | os.PathLike]) -> dict[pathlib.Path, list[str]]:
+    folders: dict[pathlib.Path, list[str]] = {}
+    for path in map(pathlib.Path, paths):
+        folders.setdefault(path.parent, []).append(path.name)
+    return folders
+
+
 __all__ = [
+    "CHECKSUMS",
     "KNOWN_CLASSES",
     "SAFE_ENTRY",
     "UNSAFE_OPTION",
     "TwinCriticPersistence",
     "UnsafeFileError",
+    "check_sha256",
     "load_vec_normalize",
+    "read_sha256sums",
     "save_vec_normalize",
     "saved_algorithm_name",
+    "sha256",
     "space_from_json",
     "space_to_json",
+    "update_sha256sums",
     "vec_normalize_to_json",
 ]

@@ -14,7 +14,7 @@ The package holds the graphs (``sb3_dacerf.export.wrappers``), the ONNX and Torc
 (``sb3_dacerf.export.backends``) and the command line (``sb3_dacerf.export.cli``); everything public is imported here:
 
     python -m sb3_dacerf.export MODEL.zip --format onnx --out policy.onnx
-    python -m sb3_dacerf.export MODEL.zip --format torchscript --vec-normalize vecnormalize.pkl
+    python -m sb3_dacerf.export MODEL.zip --format torchscript --vec-normalize vecnormalize.json
 """
 
 from sb3_dacerf.export.backends import EXPORT_FORMATS, SUPPORTED_OBSERVATION_SPACES, export_policy
