@@ -537,6 +537,8 @@ def load_vec_normalize(path: str | os.PathLike, venv: VecEnv | None = None) -> V
     normalizer.__setstate__(state)  # what unpickling does, from the JSON's values
     if venv is not None:
         normalizer.set_venv(venv)
+        n_envs = venv.num_envs
+        normalizer.reset_infos, normalizer._seeds, normalizer._options = [{} for _ in range(n_envs)], [None] * n_envs, [{}] * n_envs
     return normalizer
 
 
