@@ -24,7 +24,8 @@ config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario
 found next to the model and used, so only the model path is needed. The files are read without running code from
 them: the model's weights with ``torch.load(weights_only=True)``, the statistics and metadata as JSON, the env id
 and the algorithm from closed lists; files listed in a ``SHA256SUMS`` beside them (the drivers of
-``examples/models/``) must match their checksums. A SAC model, or VecNormalize statistics pickled by
+``examples/models/``) must match their checksums. A model saved by another program than ``train_driving.py``,
+``export_driver.py`` or this package's ``save`` (e.g. SB3's ``SAC.save``), or VecNormalize statistics pickled by
 ``VecNormalize.save`` (``--vec-normalize stats.pkl``), are read only with ``--unsafe-run-code-from-file``: a crafted
 file then runs any code it holds. ``benchmarks/export_driver.py`` writes the
 same three files from a ``benchmarks/learning_curves.py`` checkpoint (the format of ``examples/models/``), and
@@ -53,7 +54,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf import DACER, DACERF, DSAC
-from sb3_dacerf.common.persistence import check_sha256, load_vec_normalize, saved_algorithm_name
+from sb3_dacerf.common.persistence import check_sha256, load_vec_normalize, safe_load, saved_algorithm_name
 from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
 from sb3_dacerf.envs.driving.density import DENSITIES, DensitySpec, density_weights
 
@@ -298,8 +299,8 @@ def load_model(
     :param paths: the driver's files, as ``model_paths`` gives them
     :param algo: a name of :data:`ALGORITHMS` (``--algo``)
     :param metadata_algo: the metadata's ``algo``
-    :param unsafe_run_code_from_file: load with SB3's ``load``, which unpickles the file (needed for SAC models): a
-        crafted file runs any code it holds
+    :param unsafe_run_code_from_file: load with SB3's ``load``, which unpickles the file (needed for a model saved
+        without ``sb3_dacerf.json``, e.g. by SB3's ``SAC.save``): a crafted file runs any code it holds
     """
     if algo is not None:
         algo_class = load_algorithm(algo)
@@ -309,16 +310,8 @@ def load_model(
         saved = saved_algorithm(paths["model"])
         algo_class = load_algorithm(saved, f"the policy saved in {paths['model']!r}") if saved else DACERF
     checked(paths["model"])
-    if algo_class is SAC and not unsafe_run_code_from_file:
-        sys.exit(
-            f"error: {paths['model']!r} is a SAC model, which only SB3's load reads, by unpickling it: a crafted file "
-            "runs any code it holds. If you trust the file, add --unsafe-run-code-from-file"
-        )
     try:
-        if algo_class is SAC:
-            model = SAC.load(paths["model"], device="cpu")
-        else:
-            model = algo_class.load(paths["model"], device="cpu", unsafe_run_code_from_file=unsafe_run_code_from_file)  # type: ignore[call-arg]
+        model = safe_load(algo_class, paths["model"], device="cpu", unsafe_run_code_from_file=unsafe_run_code_from_file)
     except (OSError, ValueError, KeyError, RuntimeError) as error:  # another algorithm's, a corrupt or unsafe file
         sys.exit(f"error: cannot load {paths['model']!r} as {algo_class.__name__} ({error}): check --algo ({algorithm_names()})")
     # SAC.load accepts a file of this package's algorithms: the policy tells
@@ -407,8 +400,8 @@ def load_driver(
     :param render_mode: of the environment, e.g. ``"rgb_array"``
     :param zero_empty_rows: give the empty vehicle rows zeros after normalisation (``--zero-empty-rows``); default:
         the metadata's ``zero_empty_rows``, else ``False``
-    :param unsafe_run_code_from_file: also read files that need unpickling (a SAC model, ``.pkl`` statistics): a
-        crafted file runs any code it holds
+    :param unsafe_run_code_from_file: also read files that need unpickling (a model saved by SB3's ``save``, ``.pkl``
+        statistics): a crafted file runs any code it holds
     """
     paths = model_paths(model_path)
     if not os.path.isfile(paths["model"]):
@@ -509,8 +502,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--unsafe-run-code-from-file",
         action="store_true",
-        help="also read files that need unpickling (a SAC model, VecNormalize .pkl statistics): a crafted file runs any "
-        "code it holds; only for files you made or trust",
+        help="also read files that need unpickling (a model saved by SB3's save, VecNormalize .pkl statistics): a crafted "
+        "file runs any code it holds; only for files you made or trust",
     )
     parser.add_argument(
         "--density",

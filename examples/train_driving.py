@@ -61,7 +61,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.common.demonstrations import add_scripted_transitions
-from sb3_dacerf.common.persistence import load_vec_normalize, save_vec_normalize
+from sb3_dacerf.common.persistence import load_vec_normalize, safe_save, save_vec_normalize
 from sb3_dacerf.common.regime import steps_per_gradient_kwargs
 from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
@@ -354,7 +354,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.save:
             paths = model_paths(f"{args.save}_{name}")
             os.makedirs(os.path.dirname(paths["model"]) or ".", exist_ok=True)
-            model.save(paths["model"])
+            safe_save(model, paths["model"])
             with open(paths["metadata"], "w") as file:
                 json.dump({"env_id": env_id, "density": args.density, "config": args.config, "algo": args.algo}, file)
             if vec_normalize is not None:

@@ -17,11 +17,13 @@ import math
 import os
 import pathlib
 import zipfile
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.preprocessing import check_for_nested_spaces
@@ -38,6 +40,7 @@ from sb3_dacerf.common.utils import atomic_path, remove_stale_temporaries, save_
 from sb3_dacerf.common.vec_normalize import MaskedRowsRunningMeanStd, MaskedVecNormalize
 
 SelfPersistence = TypeVar("SelfPersistence", bound="TwinCriticPersistence")
+SelfAlgorithm = TypeVar("SelfAlgorithm", bound=BaseAlgorithm)
 
 #: The zip entry with the JSON that ``load`` rebuilds SB3's pickled objects from
 SAFE_ENTRY = "sb3_dacerf.json"
@@ -90,35 +93,12 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
         over ``path`` once complete, so a failed or killed save leaves the previous file intact (and the temporary
         file of a killed save is deleted by the next save or load in that folder).
         """
-        with io.BytesIO() as buffer:
-            super().save(buffer, exclude, include)  # type: ignore[arg-type]  # (SB3 writes to any binary file object)
-            with zipfile.ZipFile(buffer, "a") as archive:
-                data = json.loads(archive.read("data"))
-                archive.writestr(SAFE_ENTRY, json.dumps(self._safe_entry(data)))
-            content = buffer.getvalue()
+        content = _zip_with_safe_entry(self, lambda buffer: super(TwinCriticPersistence, self).save(buffer, exclude, include))
         if isinstance(path, io.BufferedIOBase):
             path.write(content)
             return
         with atomic_path(save_path_with_suffix(path, "zip")) as temporary:
             temporary.write_bytes(content)
-
-    def _safe_entry(self, data: dict[str, Any]) -> dict[str, Any]:
-        """The JSON of :data:`SAFE_ENTRY`: what ``data`` pickled, as plain values, and what it could not encode."""
-        aliases = [alias for alias, policy in self.policy_aliases.items() if type(self.policy) is policy]
-        objects, not_encoded = {}, {}
-        for key, value in data.items():
-            if not (isinstance(value, dict) and ":serialized:" in value) or key in RESTARTED_ON_LOAD or key == "policy_class":
-                continue
-            try:
-                objects[key] = _encode(key, getattr(self, key))
-            except TypeError as error:
-                not_encoded[key] = str(error)
-        return {
-            "algorithm": type(self).__name__,
-            "policy": aliases[0] if aliases else None,
-            "objects": objects,
-            "not_encoded": not_encoded,
-        }
 
     def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
         """
@@ -173,62 +153,9 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
         :raises ValueError: a file of another algorithm (naming it), a zip missing parts (naming them), or, as
             :class:`UnsafeFileError`, a file holding pickled objects a safe load cannot rebuild (naming them)
         """
-        if isinstance(path, (str, os.PathLike)):
-            path = _existing_zip(path)
-            remove_stale_temporaries(path)
-        entry, data = _read_json_parts(path)
-        _check_algorithm(cls, path, entry, data)
-        if unsafe_run_code_from_file:
-            return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[return-value]
-        if entry is None:
-            raise UnsafeFileError(
-                f"{path} has no {SAFE_ENTRY} (it was not saved by this package's {cls.__name__}.save), so its spaces "
-                f"and classes exist only as pickles. If you trust the file, load it with {cls.__name__}.load(path, "
-                f"{UNSAFE_OPTION}=True), which runs any code the file holds."
-            )
-        if entry.get("policy") not in cls.policy_aliases:
-            raise UnsafeFileError(
-                f"{path} holds a policy that is none of {cls.__name__}'s {list(cls.policy_aliases)}: a safe load cannot "
-                f"rebuild it. If you trust the file, load it with {UNSAFE_OPTION}=True, which runs any code it holds."
-            )
-        data = _rebuilt_data(cls, path, entry, data, {**(custom_objects or {}), **kwargs})
-        if print_system_info:
-            print("== CURRENT SYSTEM INFO ==")
-            from stable_baselines3.common.utils import get_system_info
-
-            get_system_info()
-        _, params, pytorch_variables = load_from_zip_file(path, load_data=False, device=device)  # weights_only=True
-        if "device" in data["policy_kwargs"]:
-            del data["policy_kwargs"]["device"]
-        if "policy_kwargs" in kwargs and kwargs["policy_kwargs"] != data["policy_kwargs"]:
-            raise ValueError(
-                f"The policy_kwargs given ({kwargs['policy_kwargs']}) differ from the saved ones ({data['policy_kwargs']})"
-            )
-        if env is not None:
-            env = cls._wrap_env(env, data["verbose"])
-            check_for_correct_spaces(env, data["observation_space"], data["action_space"])
-            if force_reset:
-                data["_last_obs"] = None
-            data["n_envs"] = env.num_envs
-        model = cls(policy=cls.policy_aliases[entry["policy"]], env=env, device=device, _init_setup_model=False)  # type: ignore[call-arg,arg-type]
-        model.__dict__.update(data)
-        model.__dict__.update(kwargs)
-        model._setup_model()
-        missing = [f"{name}.pth" for name in model._get_torch_save_params()[0] if name not in (params or {})]
-        if missing:
-            raise ValueError(
-                f"{path} is missing {', '.join(missing)} (the {'weights' if 'policy.pth' in missing else 'optimizer state'} "
-                f"of the model): it is not a complete file written by {cls.__name__}.save; save the model again."
-            )
-        model.set_parameters(params, exact_match=True, device=device)  # type: ignore[arg-type]
-        for name, value in (pytorch_variables or {}).items():
-            if value is not None:
-                from stable_baselines3.common.save_util import recursive_setattr
-
-                recursive_setattr(model, f"{name}.data", value.data)
-        if model.use_sde:
-            model.policy.reset_noise()  # type: ignore[operator]
-        return model
+        return safe_load(
+            cls, path, env, device, custom_objects, print_system_info, force_reset, unsafe_run_code_from_file, **kwargs
+        )
 
     def set_parameters(
         self,
@@ -250,6 +177,121 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
         return state_dicts, []
+
+
+def _zip_with_safe_entry(model: BaseAlgorithm, save: Callable[[io.BytesIO], None]) -> bytes:
+    """The zip ``save`` writes for ``model``, with :data:`SAFE_ENTRY` added."""
+    with io.BytesIO() as buffer:
+        save(buffer)
+        with zipfile.ZipFile(buffer, "a") as archive:
+            archive.writestr(SAFE_ENTRY, json.dumps(_safe_entry(model, json.loads(archive.read("data")))))
+        return buffer.getvalue()
+
+
+def safe_save(model: BaseAlgorithm, path: str | pathlib.Path) -> None:
+    """
+    Save any SB3 algorithm (e.g. ``SAC``) as ``model.save(path)`` does, atomically, with ``sb3_dacerf.json``, so that
+    :func:`safe_load` reads it back without running code from the file. This package's algorithms do so in ``save``.
+    """
+    if isinstance(model, TwinCriticPersistence):
+        model.save(path)
+        return
+    content = _zip_with_safe_entry(model, lambda buffer: model.save(buffer))  # type: ignore[arg-type]
+    with atomic_path(save_path_with_suffix(path, "zip")) as temporary:
+        temporary.write_bytes(content)
+
+
+def _safe_entry(model: BaseAlgorithm, data: dict[str, Any]) -> dict[str, Any]:
+    """The JSON of :data:`SAFE_ENTRY`: what ``data`` pickled, as plain values, and what it could not encode."""
+    aliases = [alias for alias, policy in model.policy_aliases.items() if type(model.policy) is policy]
+    objects, not_encoded = {}, {}
+    for key, value in data.items():
+        if not (isinstance(value, dict) and ":serialized:" in value) or key in RESTARTED_ON_LOAD or key == "policy_class":
+            continue
+        try:
+            objects[key] = _encode(key, getattr(model, key))
+        except TypeError as error:
+            not_encoded[key] = str(error)
+    return {
+        "algorithm": type(model).__name__,
+        "policy": aliases[0] if aliases else None,
+        "objects": objects,
+        "not_encoded": not_encoded,
+    }
+
+
+def safe_load(
+    cls: type[SelfAlgorithm],
+    path: str | pathlib.Path | io.BufferedIOBase,
+    env: GymEnv | None = None,
+    device: th.device | str = "auto",
+    custom_objects: dict[str, Any] | None = None,
+    print_system_info: bool = False,
+    force_reset: bool = True,
+    unsafe_run_code_from_file: bool = False,
+    **kwargs: Any,
+) -> SelfAlgorithm:
+    """
+    ``cls.load(path, ...)`` for any SB3 algorithm (``SAC`` as well as this package's, whose ``load`` is this function),
+    running no code from the file: see :meth:`TwinCriticPersistence.load`. The file must hold ``sb3_dacerf.json``
+    (written by this package's ``save`` or by :func:`safe_save`).
+    """
+    if isinstance(path, (str, os.PathLike)):
+        path = _existing_zip(path)
+        remove_stale_temporaries(path)
+    entry, data = _read_json_parts(path)
+    _check_algorithm(cls, path, entry, data)
+    if unsafe_run_code_from_file:
+        return BaseAlgorithm.load.__func__(cls, path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[attr-defined]
+    if entry is None:
+        raise UnsafeFileError(
+            f"{path} has no {SAFE_ENTRY} (it was not saved by this package's save or safe_save), so its spaces "
+            f"and classes exist only as pickles. If you trust the file, load it with "
+            f"{UNSAFE_OPTION}=True, which runs any code the file holds."
+        )
+    if entry.get("policy") not in cls.policy_aliases:
+        raise UnsafeFileError(
+            f"{path} holds a policy that is none of {cls.__name__}'s {list(cls.policy_aliases)}: a safe load cannot "
+            f"rebuild it. If you trust the file, load it with {UNSAFE_OPTION}=True, which runs any code it holds."
+        )
+    data = _rebuilt_data(cls, path, entry, data, {**(custom_objects or {}), **kwargs})
+    if print_system_info:
+        print("== CURRENT SYSTEM INFO ==")
+        from stable_baselines3.common.utils import get_system_info
+
+        get_system_info()
+    _, params, pytorch_variables = load_from_zip_file(path, load_data=False, device=device)  # weights_only=True
+    if "device" in data["policy_kwargs"]:
+        del data["policy_kwargs"]["device"]
+    if "policy_kwargs" in kwargs and kwargs["policy_kwargs"] != data["policy_kwargs"]:
+        raise ValueError(
+            f"The policy_kwargs given ({kwargs['policy_kwargs']}) differ from the saved ones ({data['policy_kwargs']})"
+        )
+    if env is not None:
+        env = cls._wrap_env(env, data["verbose"])
+        check_for_correct_spaces(env, data["observation_space"], data["action_space"])
+        if force_reset:
+            data["_last_obs"] = None
+        data["n_envs"] = env.num_envs
+    model = cls(policy=cls.policy_aliases[entry["policy"]], env=env, device=device, _init_setup_model=False)  # type: ignore[call-arg,arg-type]
+    model.__dict__.update(data)
+    model.__dict__.update(kwargs)
+    model._setup_model()
+    missing = [f"{name}.pth" for name in model._get_torch_save_params()[0] if name not in (params or {})]
+    if missing:
+        raise ValueError(
+            f"{path} is missing {', '.join(missing)} (the {'weights' if 'policy.pth' in missing else 'optimizer state'} "
+            f"of the model): it is not a complete file written by {cls.__name__}.save; save the model again."
+        )
+    model.set_parameters(params, exact_match=True, device=device)  # type: ignore[arg-type]
+    for name, value in (pytorch_variables or {}).items():
+        if value is not None:
+            from stable_baselines3.common.save_util import recursive_setattr
+
+            recursive_setattr(model, f"{name}.data", value.data)
+    if model.use_sde:
+        model.policy.reset_noise()  # type: ignore[operator]
+    return model
 
 
 def _existing_zip(path: str | os.PathLike) -> pathlib.Path:
@@ -538,7 +580,11 @@ def load_vec_normalize(path: str | os.PathLike, venv: VecEnv | None = None) -> V
     if venv is not None:
         normalizer.set_venv(venv)
         n_envs = venv.num_envs
-        normalizer.reset_infos, normalizer._seeds, normalizer._options = [{} for _ in range(n_envs)], [None] * n_envs, [{}] * n_envs
+        normalizer.reset_infos, normalizer._seeds, normalizer._options = (
+            [{} for _ in range(n_envs)],
+            [None] * n_envs,
+            [{}] * n_envs,
+        )
     return normalizer
 
 
@@ -617,6 +663,8 @@ __all__ = [
     "check_sha256",
     "load_vec_normalize",
     "read_sha256sums",
+    "safe_load",
+    "safe_save",
     "save_vec_normalize",
     "saved_algorithm_name",
     "sha256",
