@@ -314,12 +314,6 @@ def load_model(
         model = safe_load(algo_class, paths["model"], device="cpu", unsafe_run_code_from_file=unsafe_run_code_from_file)
     except (OSError, ValueError, KeyError, RuntimeError) as error:  # another algorithm's, a corrupt or unsafe file
         sys.exit(f"error: cannot load {paths['model']!r} as {algo_class.__name__} ({error}): check --algo ({algorithm_names()})")
-    # SAC.load accepts a file of this package's algorithms: the policy tells
-    if not isinstance(model.policy, algo_class.policy_aliases["MlpPolicy"]):
-        sys.exit(
-            f"error: cannot load {paths['model']!r} as {algo_class.__name__} (it holds a {type(model.policy).__name__}): "
-            f"check --algo ({algorithm_names()})"
-        )
     return model
 
 
