@@ -16,6 +16,7 @@ import json
 import math
 import os
 import pathlib
+import pickle
 import zipfile
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -167,8 +168,10 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
         See :meth:`BaseAlgorithm.set_parameters`: from a file, only the tensors are read, with
         ``torch.load(weights_only=True)``; ``data`` is not read.
         """
-        if isinstance(load_path_or_dict, (str, os.PathLike)):
-            load_path_or_dict = _existing_zip(load_path_or_dict)
+        if not isinstance(load_path_or_dict, dict):
+            if isinstance(load_path_or_dict, (str, os.PathLike)):
+                load_path_or_dict = _existing_zip(load_path_or_dict)
+            load_path_or_dict = read_tensors(load_path_or_dict, device)[0]
         super().set_parameters(load_path_or_dict, exact_match=exact_match, device=device)  # type: ignore[arg-type]
 
     def _excluded_save_params(self) -> list[str]:
@@ -260,7 +263,7 @@ def safe_load(
         from stable_baselines3.common.utils import get_system_info
 
         get_system_info()
-    _, params, pytorch_variables = load_from_zip_file(path, load_data=False, device=device)  # weights_only=True
+    params, pytorch_variables = read_tensors(path, device)
     if "device" in data["policy_kwargs"]:
         del data["policy_kwargs"]["device"]
     if "policy_kwargs" in kwargs and kwargs["policy_kwargs"] != data["policy_kwargs"]:
@@ -292,6 +295,26 @@ def safe_load(
     if model.use_sde:
         model.policy.reset_noise()  # type: ignore[operator]
     return model
+
+
+def read_tensors(
+    path: pathlib.Path | io.BufferedIOBase, device: th.device | str = "auto"
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """
+    The state dicts (``policy``, the optimizers) and PyTorch variables of a model zip, read with
+    ``torch.load(weights_only=True)``, as SB3's ``set_parameters`` reads them.
+
+    :raises UnsafeFileError: a ``.pth`` part holds objects other than tensors and plain containers
+    """
+    try:
+        _, params, pytorch_variables = load_from_zip_file(path, load_data=False, device=device)
+    except pickle.UnpicklingError as error:
+        raise UnsafeFileError(
+            f"{path} holds weights with objects other than tensors, which torch.load(weights_only=True) refuses to "
+            f"unpickle ({str(error).splitlines()[-1][:200]}). If you trust the file, load it with "
+            f"{UNSAFE_OPTION}=True, which runs any code it holds."
+        ) from None
+    return params, pytorch_variables
 
 
 def _existing_zip(path: str | os.PathLike) -> pathlib.Path:
