@@ -24,7 +24,7 @@ SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscret
 
 
 def _check_finite(obs: th.Tensor) -> None:
-    if not bool(th.isfinite(obs).all()):
+    if obs.is_floating_point() and not bool(th.isfinite(obs).all()):
         raise ValueError(
             "the observation has NaN or infinite entries, from which the policy can only compute a meaningless action: "
             "replace them before calling the policy"

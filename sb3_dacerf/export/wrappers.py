@@ -261,7 +261,10 @@ class FlaggedPolicy(nn.Module):
 
     def forward(self, obs: PyTorchObs, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
         values = list(obs.values()) if isinstance(obs, dict) else [obs]
-        finite = th.stack([value.reshape(value.shape[0], -1).isfinite().all(dim=1) for value in values]).all(dim=0)
+        # Integer observations (images, discrete) are always finite (and ONNX's IsNaN takes floats only)
+        checks = [value.reshape(value.shape[0], -1).isfinite().all(dim=1) for value in values if value.is_floating_point()]
+        first = values[0]
+        finite = th.stack(checks).all(dim=0) if checks else th.ones(first.shape[0], dtype=th.bool, device=first.device)
         actions = self.policy(obs, noise)
         return th.where(finite.unsqueeze(1), actions, th.full_like(actions, float("nan"))), finite
 
