@@ -167,7 +167,15 @@ def test_safe_load_round_trip_rebuilds_what_sb3_pickles(tmp_path):
         loaded.learn(60)  # trains on
 
 
-def test_a_learning_rate_schedule_needs_custom_objects(tmp_path):
+def test_known_schedules_come_back_and_others_need_custom_objects(tmp_path):
+    from rl_zoo3.utils import linear_schedule
+    from stable_baselines3.common.utils import LinearSchedule
+
+    for schedule in (LinearSchedule(1e-3, 1e-4, 0.5), linear_schedule(3e-4)):  # SB3's, RL Zoo's lin_
+        DSAC("MlpPolicy", "Pendulum-v1", learning_rate=schedule, **fast_settings(DSAC)).save(tmp_path / "model.zip")
+        loaded = DSAC.load(tmp_path / "model.zip")
+        assert type(loaded.learning_rate) is type(schedule)
+        assert [loaded.lr_schedule(p) for p in (1.0, 0.3, 0.0)] == [schedule(p) for p in (1.0, 0.3, 0.0)]
     model = DSAC("MlpPolicy", "Pendulum-v1", learning_rate=lambda progress: 1e-3 * progress, **fast_settings(DSAC))
     model.save(tmp_path / "model.zip")
     with pytest.raises(UnsafeFileError, match=r"learning_rate .*custom_objects=\{'learning_rate': \.\.\.\}"):
@@ -370,3 +378,33 @@ def test_a_changed_shipped_file_is_refused_by_the_loaders(tmp_path, monkeypatch,
     with pytest.raises(SystemExit):
         main()
     assert "does not match its checksum" in capsys.readouterr().err
+
+
+# What used to pass silently
+
+
+@pytest.mark.parametrize("buffer_size", [0, -1])
+def test_buffer_size_below_one_is_refused(model_class, buffer_size):
+    settings = {**fast_settings(model_class), "buffer_size": buffer_size}
+    with pytest.raises(ValueError, match=rf"Invalid buffer_size={buffer_size}: it must be a positive integer"):
+        model_class("MlpPolicy", "Pendulum-v1", **settings)
+
+
+@pytest.mark.slow  # RL Zoo in a subprocess
+def test_buffer_size_below_one_in_rl_zoo_yaml_is_refused(tmp_path):
+    from test_zoo import zoo_command
+
+    command, env = zoo_command(
+        "train", "--algo", "dacerf", "--env", "Pendulum-v1", "-n", "100", "-f", "logs", "-params", "buffer_size:0"
+    )
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))  # this checkout's package
+    result = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0 and "Invalid buffer_size=0: it must be a positive integer" in result.stderr
+
+
+def test_a_learning_rate_schedule_that_goes_negative_raises_when_it_does(model_class):
+    settings = {**fast_settings(model_class), "learning_starts": 20}
+    model = model_class("MlpPolicy", "Pendulum-v1", learning_rate=lambda progress: 1e-3 * (2 * progress - 1), **settings)
+    with pytest.raises(ValueError, match=r"learning-rate schedule gave -[0-9.e-]+ at progress remaining 0\.4"):
+        model.learn(100)
+    assert 50 <= model.num_timesteps <= 52  # the first update past the middle of training

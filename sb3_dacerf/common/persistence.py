@@ -11,6 +11,7 @@ and never unpickles it: the classes come from closed lists of known names, the t
 """
 
 import hashlib
+import importlib
 import io
 import json
 import math
@@ -63,6 +64,15 @@ KNOWN_CLASSES: dict[str, type] = {
         DemonstrationReplayBuffer,
     )
 }
+#: Learning-rate schedule classes ``sb3_dacerf.json`` may name (SB3's and RL Zoo's ``lin_``), with their fields
+KNOWN_SCHEDULES = frozenset(
+    {
+        "stable_baselines3.common.utils.ConstantSchedule",
+        "stable_baselines3.common.utils.LinearSchedule",
+        "stable_baselines3.common.utils.FloatSchedule",
+        "rl_zoo3.utils.SimpleLinearSchedule",
+    }
+)
 #: What ``data`` pickles that a safe load leaves at the constructor's values: the last rollout's observations and the
 #: episode statistics (both restart with the next ``learn``), and the schedule ``_setup_model`` rebuilds from
 #: ``learning_rate``
@@ -427,6 +437,9 @@ def _encode_value(value: Any, where: str) -> Any:
         return {"dict": {k: _encode_value(v, f"{where}[{k!r}]") for k, v in value.items()}}
     if isinstance(value, type) and f"{value.__module__}.{value.__qualname__}" in KNOWN_CLASSES:
         return {"class": f"{value.__module__}.{value.__qualname__}"}
+    schedule = f"{type(value).__module__}.{type(value).__qualname__}"
+    if schedule in KNOWN_SCHEDULES:
+        return {"schedule": schedule, "fields": {k: _encode_value(v, f"{where}.{k}") for k, v in vars(value).items()}}
     raise TypeError(f"{where} is a {type(value).__name__} ({value!r:.80}), which is none of the known classes")
 
 
@@ -448,6 +461,13 @@ def _decode_value(value: Any) -> Any:
             return KNOWN_CLASSES[value["class"]]
         if "float" in value:
             return float(value["float"])
+        if "schedule" in value:
+            if value["schedule"] not in KNOWN_SCHEDULES:
+                raise UnsafeFileError(f"The file names the schedule {value['schedule']!r}, none of {sorted(KNOWN_SCHEDULES)}")
+            module, _, name = value["schedule"].rpartition(".")
+            schedule = object.__new__(getattr(importlib.import_module(module), name))
+            schedule.__dict__.update({k: _decode_value(v) for k, v in value["fields"].items()})  # what unpickling does
+            return schedule
         return {k: _decode_value(v) for k, v in value["dict"].items()}
     return value
 
