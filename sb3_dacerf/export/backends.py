@@ -24,7 +24,8 @@ SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscret
 
 
 def _check_finite(obs: th.Tensor) -> None:
-    if obs.is_floating_point() and not bool(th.isfinite(obs).all()):
+    # obs * 0 is 0 for a finite entry and NaN for a NaN or infinite one: fewer interpreter steps than isfinite().all()
+    if obs.is_floating_point() and float((obs * 0).sum()) != 0.0:
         raise ValueError(
             "the observation has NaN or infinite entries, from which the policy can only compute a meaningless action: "
             "replace them before calling the policy"

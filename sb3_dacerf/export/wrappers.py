@@ -260,13 +260,18 @@ class FlaggedPolicy(nn.Module):
         self.policy = policy
 
     def forward(self, obs: PyTorchObs, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
+        # obs * 0 is 0 for a finite entry and NaN for a NaN or infinite one, so each row's sum is 0 or NaN: added to
+        # the action it makes the row NaN, compared with 0 it is the flag (fewer graph nodes than IsInf / IsNaN / Where)
         values = list(obs.values()) if isinstance(obs, dict) else [obs]
-        # Integer observations (images, discrete) are always finite (and ONNX's IsNaN takes floats only)
-        checks = [value.reshape(value.shape[0], -1).isfinite().all(dim=1) for value in values if value.is_floating_point()]
-        first = values[0]
-        finite = th.stack(checks).all(dim=0) if checks else th.ones(first.shape[0], dtype=th.bool, device=first.device)
+        # Integer observations (images, discrete) are always finite
+        poison = [
+            (value * 0).reshape(value.shape[0], -1).sum(dim=1, keepdim=True) for value in values if value.is_floating_point()
+        ]
         actions = self.policy(obs, noise)
-        return th.where(finite.unsqueeze(1), actions, th.full_like(actions, float("nan"))), finite
+        if not poison:
+            return actions, th.ones(actions.shape[0], dtype=th.bool, device=actions.device)
+        total = poison[0] if len(poison) == 1 else th.cat(poison, dim=1).sum(dim=1, keepdim=True)
+        return actions + total.to(actions.dtype), total[:, 0] == 0
 
 
 def _linear(layer: nn.Module) -> nn.Linear:
