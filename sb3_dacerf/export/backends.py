@@ -110,9 +110,9 @@ def export_policy(
     ``session.run(None, {"obs": obs})`` is deterministic, ``{"obs": obs, "a0": a0}`` is not); a noise with a batch of 1
     is shared by all the observations. TorchScript: ``policy(obs)`` or ``policy(obs, noise)``, with ``obs`` a tensor
     or a dict of tensors; an observation with a NaN or infinite entry raises ``torch.jit.Error`` (the graph's
-    ``ValueError``). Observations have the
-    model's observation space layout (channel-first images, as after ``VecTransposeImage``) and dtype (``uint8``
-    images, ``int64`` discrete observations), with a leading batch dimension.
+    ``ValueError``). Observations have the model's observation space layout (channel-first images, as after
+    ``VecTransposeImage``) and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch
+    dimension.
 
     :param model: A DACERF, DACER or DSAC model (trained or not)
     :param path: File to write (``.onnx`` or ``.pt`` by convention); its folder must exist. The file is written
