@@ -121,7 +121,7 @@ def export_policy(
     :param n_sampling_steps: DACERF: number of Euler steps, fixed in the graph (the model's ``n_sampling_steps`` by
         default). DACER: leave it out; its ``n_diffusion_steps`` reverse steps are fixed by its noise schedule. DSAC: leave
         it out
-    :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``VecNormalize.load``), if any:
+    :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``load_vec_normalize``), if any:
         its observation normalisation is then applied inside the graph, so the graph takes raw observations; statistics
         of another observation layout are refused (:func:`check_vec_normalize`)
     :param opset_version: ONNX opset
