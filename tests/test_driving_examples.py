@@ -477,7 +477,7 @@ def test_export_writes_the_files_evaluate_driving_reads(checkpoint, exported, tm
     capsys.readouterr()
     results = evaluate.main([exported, "--episodes", "1"])
     assert "observations normalised with" in capsys.readouterr().out and np.isfinite(results["tar"])
-    with pytest.raises(SystemExit, match=r"cannot load .* as SAC \(.*holds a DACERF model, not a SAC model.*\): check --algo"):
+    with pytest.raises(SystemExit, match=r"cannot load .* as SAC \(.*holds a DACERF model .*not a SAC model.*\): check --algo"):
         evaluate.main([exported, "--algo", "sac"])
     stats = evaluate.load_driver(exported).vec_normalize
     assert not stats.training
@@ -633,7 +633,7 @@ def test_dacer_and_dsac_drivers_train_export_and_evaluate_deterministically(algo
     # another algorithm's class is refused with the file's policy named
     with pytest.raises(
         SystemExit,
-        match=rf"cannot load .* as SAC \(.* holds a {name} model, not a SAC model\): check --algo \(dacerf, dacer, dsac or sac\)",
+        match=rf"cannot load .* as SAC \(.* holds a {name} model .*not a SAC model.*\): check --algo \(dacerf, dacer",
     ):
         evaluate.main([trained, "--algo", "sac"])
     other = "dsac" if algo == "dacer" else "dacer"

@@ -253,7 +253,7 @@ def safe_load(
         path = _existing_zip(path)
         remove_stale_temporaries(path)
     entry, data = _read_json_parts(path)
-    _check_algorithm(cls, path, entry, data)
+    _check_algorithm(cls, path, entry)
     if unsafe_run_code_from_file:
         return BaseAlgorithm.load.__func__(cls, path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[attr-defined]
     if entry is None:
@@ -379,11 +379,12 @@ def saved_algorithm_name(path: str | os.PathLike | io.BufferedIOBase) -> str | N
     return None
 
 
-def _check_algorithm(cls: type, path: Any, entry: dict[str, Any] | None, data: dict[str, Any]) -> None:
+def _check_algorithm(cls: type, path: Any, entry: dict[str, Any] | None) -> None:
     algorithm = saved_algorithm_name(path) if entry is None else str(entry.get("algorithm", "")).lower()
     if algorithm and algorithm != cls.__name__.lower():
         raise ValueError(
-            f"{path} holds a {algorithm.upper()} model, not a {cls.__name__} model: load it with {algorithm.upper()}.load(...)."
+            f"{path} holds a {algorithm.upper()} model (as its {'sb3_dacerf.json' if entry else 'saved policy class'} records), "
+            f"not a {cls.__name__} model: load it with {algorithm.upper()}.load(...)."
         )
 
 
