@@ -351,7 +351,7 @@ def _read_json_parts(path: pathlib.Path | io.BufferedIOBase) -> tuple[dict[str, 
             data = json.loads(archive.read("data"))
             entry = json.loads(archive.read(SAFE_ENTRY)) if SAFE_ENTRY in names else None
     except zipfile.BadZipFile:
-        raise ValueError(f"{path} is not a zip file: load a model written by model.save()") from None
+        raise ValueError(f"{path} wasn't a zip-file: load a model written by model.save()") from None
     if isinstance(path, io.BufferedIOBase):
         path.seek(0)
     if not isinstance(data, dict) or (entry is not None and not isinstance(entry, dict)):
