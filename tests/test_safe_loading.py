@@ -203,7 +203,7 @@ def test_a_zip_missing_its_parts_names_them(saved, tmp_path):
     with pytest.raises(ValueError, match=r"missing critic.optimizer.pth \(the optimizer state"):
         DACERF.load(path)
     (tmp_path / "not.zip").write_bytes(b"plain text")
-    with pytest.raises(ValueError, match="wasn't a zip-file: load a model written by model.save"):
+    with pytest.raises(ValueError, match=r"wasn't a zip-file: load a model written by model\.save"):
         DACERF.load(tmp_path / "not.zip")
 
 
