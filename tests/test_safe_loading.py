@@ -212,10 +212,13 @@ def test_another_environments_replay_buffer_is_refused(tmp_path):
     other.learn(60)
     other.save_replay_buffer(tmp_path / "buffer.pkl")
     model = DACERF("MlpPolicy", "Pendulum-v1", **fast_settings(DACERF))
+    own = model.replay_buffer
     with pytest.raises(
         ValueError, match=r"holds transitions of the observation_space Box.*load the buffer saved with this model"
     ):
         model.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert model.replay_buffer is own
+    model.learn(60)  # trains on with its own buffer
 
 
 def test_the_temporary_file_of_a_killed_save_is_removed_at_the_next_save(saved, tmp_path):

@@ -30,10 +30,10 @@ from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.preprocessing import check_for_nested_spaces
 from stable_baselines3.common.running_mean_std import RunningMeanStd
-from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.save_util import load_from_zip_file, recursive_setattr
 from stable_baselines3.common.torch_layers import CombinedExtractor, FlattenExtractor, NatureCNN
 from stable_baselines3.common.type_aliases import GymEnv, TrainFreq, TrainFrequencyUnit
-from stable_baselines3.common.utils import check_for_correct_spaces
+from stable_baselines3.common.utils import check_for_correct_spaces, get_system_info
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from stable_baselines3.common.vec_env.patch_gym import _convert_space
 
@@ -124,15 +124,17 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """
         See :meth:`OffPolicyAlgorithm.load_replay_buffer` (a pickle: load only replay buffers you saved). A buffer of
-        observations or actions of other spaces than the model's (another environment's) is refused with both.
+        observations or actions of other spaces than the model's (another environment's) is refused with both, and
+        the model keeps its buffer.
         """
+        previous = self.replay_buffer
         super().load_replay_buffer(path, truncate_last_traj)
         buffer = self.replay_buffer
         assert buffer is not None
         for name in ("observation_space", "action_space"):
             theirs, ours = getattr(buffer, name), getattr(self, name)
             if theirs != ours:
-                self.replay_buffer = None
+                self.replay_buffer = previous  # the model keeps its own buffer
                 raise ValueError(
                     f"The replay buffer in {path} holds transitions of the {name} {theirs}, the model's is {ours}: "
                     "load the buffer saved with this model (another environment's transitions cannot be trained on)."
@@ -270,8 +272,6 @@ def safe_load(
     data = _rebuilt_data(cls, path, entry, data, {**(custom_objects or {}), **kwargs})
     if print_system_info:
         print("== CURRENT SYSTEM INFO ==")
-        from stable_baselines3.common.utils import get_system_info
-
         get_system_info()
     params, pytorch_variables = read_tensors(path, device)
     if "device" in data["policy_kwargs"]:
@@ -299,8 +299,6 @@ def safe_load(
     model.set_parameters(params, exact_match=True, device=device)  # type: ignore[arg-type]
     for name, value in (pytorch_variables or {}).items():
         if value is not None:
-            from stable_baselines3.common.save_util import recursive_setattr
-
             recursive_setattr(model, f"{name}.data", value.data)
     if model.use_sde:
         model.policy.reset_noise()  # type: ignore[operator]
