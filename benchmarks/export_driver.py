@@ -16,8 +16,10 @@ A checkpoint is the folder ``<out>/checkpoints/<env>/<variant>-seed<N>/`` (``mod
   model loads and can train on, with Adam restarting from zero moments);
 - ``STEM.json``: ``env_id``, ``density``, ``config`` and ``algo``, the metadata ``examples/train_driving.py --save``
   writes;
-- ``STEM_vecnormalize.pkl``: the run's observation statistics (``VecNormalize.save``, ``training=False``), if the run
-  normalised observations (``learning_curves.py --vec-normalize``).
+- ``STEM_vecnormalize.json``: the run's observation statistics (``save_vec_normalize``, ``training=False``), if the
+  run normalised observations (``learning_curves.py --vec-normalize``).
+
+When STEM's folder has a ``SHA256SUMS`` (``examples/models/``), the checksums of the written files are updated in it.
 
 The environment id and its ``gym.make`` keyword arguments (``density``, ``config``) are read from the environment
 pickled in the checkpoint (its ``spec``), else from the folder's path; the algorithm from the policy class saved in
@@ -175,7 +177,8 @@ def export(
     keep_optimizer: bool = False,
 ) -> dict[str, str]:
     """
-    Write ``stem``.zip, .json and (with observation normalisation) _vecnormalize.pkl from a checkpoint.
+    Write ``stem``.zip, .json and (with observation normalisation) _vecnormalize.json from a checkpoint, and their
+    checksums into the ``SHA256SUMS`` of ``stem``'s folder if it has one.
 
     :param folder: the checkpoint folder
     :param stem: path of the exported files without suffix
@@ -188,6 +191,7 @@ def export(
     import cloudpickle
 
     import sb3_dacerf  # noqa: F401  (registers the environment ids)
+    from sb3_dacerf.common.persistence import CHECKSUMS, safe_save, save_vec_normalize, update_sha256sums
 
     check_checkpoint(folder)
     with open(folder / "env.pkl", "rb") as file:
@@ -198,8 +202,9 @@ def export(
     algo = checkpoint_algorithm(folder, algo)
     algo_class = load_algorithm(algo)
     try:
+        # The checkpoint is the user's own (env.pkl, a pickle, was read above): SB3's load for SAC, ours for the others
         model = algo_class.load(folder / "model.zip", device="cpu")
-    except Exception as error:  # SB3 raises various errors for a file of another class or a corrupt file
+    except (OSError, ValueError, KeyError, RuntimeError) as error:  # a file of another class or a corrupt file
         sys.exit(f"error: cannot load {folder / 'model.zip'} as {algo_class.__name__} ({error}): check --algo")
     normalize = saved["normalize"]
     check_spaces(model, normalize, env_id, env_kwargs)  # before anything is written
@@ -208,7 +213,7 @@ def export(
 
     paths = model_paths(stem)
     os.makedirs(os.path.dirname(paths["model"]) or ".", exist_ok=True)
-    model.save(paths["model"])
+    safe_save(model, paths["model"])
     metadata = {
         "env_id": env_id,
         "density": env_kwargs.get("density", "normal"),
@@ -218,13 +223,15 @@ def export(
     with open(paths["metadata"], "w") as file:
         json.dump(metadata, file)
     if normalize is not None:
-        normalize.set_venv(saved["venv"])  # unpickled without its environments, which saving needs
         normalize.training = False
-        normalize.save(paths["vec_normalize"])
+        save_vec_normalize(normalize, paths["vec_normalize"])
     elif os.path.isfile(paths["vec_normalize"]):
         os.remove(paths["vec_normalize"])  # left from an earlier export: evaluate_driving.py would use it
         print(f"removed {paths['vec_normalize']}: this run did not normalise observations")
 
+    if os.path.isfile(os.path.join(os.path.dirname(paths["model"]) or ".", CHECKSUMS)):
+        update_sha256sums([p for p in paths.values() if os.path.isfile(p)])
+        print(f"updated {os.path.join(os.path.dirname(paths['model']), CHECKSUMS)}")
     # Load the files back as evaluate_driving.py does
     load_driver(paths["model"]).env.close()
     sizes = ", ".join(f"{os.path.basename(p)} {file_size(p)}" for p in paths.values() if os.path.isfile(p))

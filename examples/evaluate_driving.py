@@ -5,7 +5,7 @@ Evaluate a trained driver (DACERF, DACER, DSAC or SAC) on the paper's driving sc
 posterior noise, DSAC's and SAC's ``tanh`` of the Gaussian's mean).
 
     python examples/evaluate_driving.py driving_multilane.zip --episodes 20
-    python examples/evaluate_driving.py model.zip --env intersection --algo sac --vec-normalize stats.pkl
+    python examples/evaluate_driving.py model.zip --env intersection --algo dsac --vec-normalize stats.json
     python examples/evaluate_driving.py --scripted --env multilane --episodes 50   # the scripted reference driver
     python examples/evaluate_driving.py --scripted junction --env intersection --episodes 50   # its demonstrator
     python examples/evaluate_driving.py --idle --env intersection --episodes 50    # zero increments: the floor
@@ -20,8 +20,14 @@ filled (the multi-lane driver of ``examples/models/``, trained in normal traffic
 drivers trained with ``sb3_dacerf.common.vec_normalize.MaskedVecNormalize`` need nothing of the kind.
 
 A model saved by ``examples/train_driving.py --save NAME`` comes with ``NAME_<scenario>.json`` (env id, density,
-config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario>_vecnormalize.pkl``: both are
-found next to the model and used, so only the model path is needed. ``benchmarks/export_driver.py`` writes the
+config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario>_vecnormalize.json``: both are
+found next to the model and used, so only the model path is needed. The files are read without running code from
+them: the model's weights with ``torch.load(weights_only=True)``, the statistics and metadata as JSON, the env id
+and the algorithm from closed lists; files listed in a ``SHA256SUMS`` beside them (the drivers of
+``examples/models/``) must match their checksums. A model saved by another program than ``train_driving.py``,
+``export_driver.py`` or this package's ``save`` (e.g. SB3's ``SAC.save``), or VecNormalize statistics pickled by
+``VecNormalize.save`` (``--vec-normalize stats.pkl``), are read only with ``--unsafe-run-code-from-file``: a crafted
+file then runs any code it holds. ``benchmarks/export_driver.py`` writes the
 same three files from a ``benchmarks/learning_curves.py`` checkpoint (the format of ``examples/models/``), and
 ``examples/render_driving.py --model`` renders an episode of such a model, loaded by ``load_driver`` below.
 
@@ -48,6 +54,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf import DACER, DACERF, DSAC
+from sb3_dacerf.common.persistence import check_sha256, load_vec_normalize, safe_load, saved_algorithm_name
 from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
 from sb3_dacerf.envs.driving.density import DENSITIES, DensitySpec, density_weights
 
@@ -157,7 +164,7 @@ def format_density_table(results: dict[str, dict[str, Any]]) -> str:
 def model_paths(model_path: str) -> dict[str, str]:
     """The files that ``train_driving.py --save`` writes beside a model: metadata JSON and VecNormalize statistics."""
     stem = model_path[:-4] if model_path.endswith(".zip") else model_path
-    return {"model": stem + ".zip", "metadata": stem + ".json", "vec_normalize": stem + "_vecnormalize.pkl"}
+    return {"model": stem + ".zip", "metadata": stem + ".json", "vec_normalize": stem + "_vecnormalize.json"}
 
 
 def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: int, seed: int) -> dict[str, Any]:
@@ -264,25 +271,36 @@ def load_algorithm(algo: str, source: str = "--algo") -> type[OffPolicyAlgorithm
 
 def saved_algorithm(model_path: str | os.PathLike) -> str | None:
     """
-    The algorithm of the policy class saved in a model zip, as a lower-case name (``dacerf``, ``dsac``, ``sac``,
-    ``td3``...), ``None`` if it cannot be read.
+    The algorithm a model zip records, as a lower-case name (``dacerf``, ``dsac``, ``sac``, ``td3``...), read as
+    JSON; ``None`` if it cannot be read.
 
     :param model_path: the model .zip
     """
-    from sb3_dacerf.common.persistence import algorithm_name, saved_policy_class
-
-    return algorithm_name(saved_policy_class(model_path))
+    return saved_algorithm_name(model_path)
 
 
-def load_model(paths: dict[str, str], algo: str | None = None, metadata_algo: str | None = None) -> OffPolicyAlgorithm:
+def checked(path: str) -> str:
+    """``path``, after checking it against the ``SHA256SUMS`` beside it if that lists it; exits on a mismatch."""
+    try:
+        check_sha256(path)
+    except ValueError as error:
+        sys.exit(f"error: {error}")
+    return path
+
+
+def load_model(
+    paths: dict[str, str], algo: str | None = None, metadata_algo: str | None = None, unsafe_run_code_from_file: bool = False
+) -> OffPolicyAlgorithm:
     """
-    Load a driver's model with the class of its algorithm: ``algo``, else the metadata's, else the one of the policy
-    class saved in the model (DACERF if that cannot be read). Exits with a message naming the problem if the file
-    holds another algorithm's model or cannot be loaded.
+    Load a driver's model with the class of its algorithm: ``algo``, else the metadata's, else the one the model
+    records (DACERF if it records none). Exits with a message naming the problem if the file holds another
+    algorithm's model or cannot be loaded.
 
     :param paths: the driver's files, as ``model_paths`` gives them
     :param algo: a name of :data:`ALGORITHMS` (``--algo``)
     :param metadata_algo: the metadata's ``algo``
+    :param unsafe_run_code_from_file: load with SB3's ``load``, which unpickles the file (needed for a model saved
+        without ``sb3_dacerf.json``, e.g. by SB3's ``SAC.save``): a crafted file runs any code it holds
     """
     if algo is not None:
         algo_class = load_algorithm(algo)
@@ -291,17 +309,56 @@ def load_model(paths: dict[str, str], algo: str | None = None, metadata_algo: st
     else:
         saved = saved_algorithm(paths["model"])
         algo_class = load_algorithm(saved, f"the policy saved in {paths['model']!r}") if saved else DACERF
+    checked(paths["model"])
     try:
-        model = algo_class.load(paths["model"], device="cpu")
-    except Exception as error:  # SB3 raises various errors for a file of another class or a corrupt file
+        model = safe_load(algo_class, paths["model"], device="cpu", unsafe_run_code_from_file=unsafe_run_code_from_file)
+    except (OSError, ValueError, KeyError, RuntimeError) as error:  # another algorithm's, a corrupt or unsafe file
         sys.exit(f"error: cannot load {paths['model']!r} as {algo_class.__name__} ({error}): check --algo ({algorithm_names()})")
-    # SAC.load accepts a file of this package's algorithms: the policy tells
-    if not isinstance(model.policy, algo_class.policy_aliases["MlpPolicy"]):
-        sys.exit(
-            f"error: cannot load {paths['model']!r} as {algo_class.__name__} (it holds a {type(model.policy).__name__}): "
-            f"check --algo ({algorithm_names()})"
-        )
     return model
+
+
+def load_statistics(
+    paths: dict[str, str],
+    vec_normalize: str | None,
+    env: gym.Env,
+    env_id: str,
+    density: DensitySpec,
+    config: dict,
+    unsafe_run_code_from_file: bool = False,
+) -> tuple[str | None, Any]:
+    """
+    The path and the ``VecNormalize`` (``training=False``) of a driver's observation statistics: ``vec_normalize``,
+    else the ``_vecnormalize.json`` beside the model; ``(None, None)`` without statistics. A ``.pkl`` is read only
+    with ``unsafe_run_code_from_file``, never because it lies beside the model. Exits with a message on any problem.
+    """
+    normalizer = None
+    stats = vec_normalize or (paths["vec_normalize"] if os.path.isfile(paths["vec_normalize"]) else None)
+    if vec_normalize and not os.path.isfile(vec_normalize):
+        sys.exit(f"error: no statistics file {vec_normalize!r}: pass the _vecnormalize.json saved with the model")
+    pickled = paths["vec_normalize"][: -len(".json")] + ".pkl"
+    if stats is None and os.path.isfile(pickled):
+        sys.exit(
+            f"error: {pickled!r} beside the model is a pickle, which is not read unless asked for (a crafted one runs "
+            f"any code it holds). If you trust it, pass --vec-normalize {pickled} --unsafe-run-code-from-file"
+        )
+    if stats:
+        from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+        venv = DummyVecEnv([lambda: gym.make(env_id, density=density, config=config)])
+        if stats.endswith(".pkl") and not unsafe_run_code_from_file:
+            sys.exit(
+                f"error: {stats!r} is a pickle, which runs any code it holds when read: pass the statistics as JSON "
+                "(sb3_dacerf.common.persistence.save_vec_normalize), or, if you trust the file, add --unsafe-run-code-from-file"
+            )
+        try:
+            checked(stats)
+            normalizer = VecNormalize.load(stats, venv) if stats.endswith(".pkl") else load_vec_normalize(stats, venv)
+        except (ValueError, AssertionError) as error:  # not statistics, or of observations of another shape
+            sys.exit(f"error: cannot use {stats!r} as the model's observation statistics: {error}")
+        normalizer.training = False
+        if normalizer.observation_space.shape != env.observation_space.shape:
+            sys.exit(f"error: the statistics in {stats!r} are for observations of another shape: pass the model's own statistics")
+    return stats, normalizer
 
 
 def load_driver(
@@ -314,19 +371,22 @@ def load_driver(
     force: bool = False,
     render_mode: str | None = None,
     zero_empty_rows: bool | None = None,
+    unsafe_run_code_from_file: bool = False,
 ) -> Driver:
     """
     Load a saved driver with what was saved beside it (see ``model_paths``), and make its environment.
 
     Settings left at ``None`` come from the metadata JSON: the scenario, the algorithm (else the saved policy's), the
-    density (else ``normal``) and the config (``config`` overrides single keys of it). The VecNormalize statistics
-    beside the model are used unless ``vec_normalize`` names another file. Every problem (missing file, another
-    scenario than the model's, a file of another class, spaces that do not match) exits with a message naming it.
+    density (else ``normal``) and the config (``config`` overrides single keys of it). The statistics beside the
+    model (``_vecnormalize.json``) are used unless ``vec_normalize`` names another file. Every problem (missing file,
+    another scenario than the model's, a file of another class, spaces that do not match, a checksum that does not
+    match, a file that needs unpickling) exits with a message naming it.
 
     :param model_path: the model .zip (the suffix may be left out)
     :param scenario: ``multilane``, ``intersection`` or an env id
     :param algo: ``dacerf``, ``dacer``, ``dsac`` or ``sac`` (:data:`ALGORITHMS`)
-    :param vec_normalize: path of VecNormalize statistics saved with ``VecNormalize.save``
+    :param vec_normalize: path of statistics saved with ``sb3_dacerf.common.persistence.save_vec_normalize``
+        (``.json``), or, with ``unsafe_run_code_from_file``, with ``VecNormalize.save`` (``.pkl``)
     :param density: ``sparse``, ``normal``, ``dense``, or a distribution to draw one per episode (``random``, a list,
         a dict of weights)
     :param config: env config overrides
@@ -334,6 +394,8 @@ def load_driver(
     :param render_mode: of the environment, e.g. ``"rgb_array"``
     :param zero_empty_rows: give the empty vehicle rows zeros after normalisation (``--zero-empty-rows``); default:
         the metadata's ``zero_empty_rows``, else ``False``
+    :param unsafe_run_code_from_file: also read files that need unpickling (a model saved by SB3's ``save``, ``.pkl``
+        statistics): a crafted file runs any code it holds
     """
     paths = model_paths(model_path)
     if not os.path.isfile(paths["model"]):
@@ -341,12 +403,24 @@ def load_driver(
             f"error: no model file {paths['model']!r}: pass the .zip written by train_driving.py --save, "
             "benchmarks/export_driver.py or model.save()"
         )
-    metadata = {}
+    metadata: dict[str, Any] = {}
     if os.path.isfile(paths["metadata"]):
-        with open(paths["metadata"]) as file:
-            metadata = json.load(file)
+        try:
+            with open(checked(paths["metadata"])) as file:
+                metadata = json.load(file)
+        except (UnicodeDecodeError, json.JSONDecodeError) as error:
+            sys.exit(f"error: {paths['metadata']!r} is not JSON ({error}): pass the metadata written with the model")
+        if not isinstance(metadata, dict):
+            sys.exit(f"error: {paths['metadata']!r} holds a {type(metadata).__name__}, not the metadata's JSON object")
     trained_env = metadata.get("env_id")
+    if trained_env is not None and trained_env not in SCENARIOS.values():
+        sys.exit(
+            f"error: {paths['metadata']!r} names the environment {trained_env!r}, none of {list(SCENARIOS.values())}: "
+            "the driving examples make only these (an env id is never imported from a file)"
+        )
     env_id = SCENARIOS.get(scenario, scenario) if scenario else trained_env
+    if env_id is not None and env_id not in SCENARIOS.values():
+        sys.exit(f"error: unknown scenario {scenario!r}: pass one of {list(SCENARIOS)} or {list(SCENARIOS.values())}")
     if env_id is None:
         sys.exit(
             f"error: {paths['metadata']!r} not found, so the scenario is unknown: pass --env multilane or --env intersection"
@@ -360,7 +434,7 @@ def load_driver(
     config = {**metadata.get("config", {}), **(config or {})}
     env = gym.make(env_id, density=density, config=config, render_mode=render_mode)
 
-    model = load_model(paths, algo, metadata.get("algo"))
+    model = load_model(paths, algo, metadata.get("algo"), unsafe_run_code_from_file)
     for name in ("observation_space", "action_space"):
         if getattr(model, name).shape != getattr(env, name).shape:
             sys.exit(
@@ -368,17 +442,7 @@ def load_driver(
                 f"{getattr(env, name).shape}: evaluate on the scenario and config the model was trained with"
             )
 
-    normalizer = None
-    stats = vec_normalize or (paths["vec_normalize"] if os.path.isfile(paths["vec_normalize"]) else None)
-    if vec_normalize and not os.path.isfile(vec_normalize):
-        sys.exit(f"error: no VecNormalize statistics file {vec_normalize!r}: pass the .pkl saved with the model")
-    if stats:
-        from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
-
-        normalizer = VecNormalize.load(stats, DummyVecEnv([lambda: gym.make(env_id, density=density, config=config)]))
-        normalizer.training = False
-        if normalizer.observation_space.shape != env.observation_space.shape:
-            sys.exit(f"error: the statistics in {stats!r} are for observations of another shape: pass the model's own .pkl")
+    stats, normalizer = load_statistics(paths, vec_normalize, env, env_id, density, config, unsafe_run_code_from_file)
     if zero_empty_rows is None:
         zero_empty_rows = bool(metadata.get("zero_empty_rows", False))
     empty_rows = None
@@ -421,7 +485,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--algo", choices=list(ALGORITHMS), help="model class (default: from the metadata, else the saved policy's)"
     )
-    parser.add_argument("--vec-normalize", help="VecNormalize statistics .pkl (default: the one saved beside the model)")
+    parser.add_argument(
+        "--vec-normalize", help="observation statistics .json (default: the _vecnormalize.json saved beside the model)"
+    )
+    parser.add_argument(
+        "--unsafe-run-code-from-file",
+        action="store_true",
+        help="also read files that need unpickling (a model saved by SB3's save, VecNormalize .pkl statistics): a crafted "
+        "file runs any code it holds; only for files you made or trust",
+    )
     parser.add_argument(
         "--density",
         type=parse_density,
@@ -472,7 +544,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     by_density = {}
     for density in densities:
         driver = load_driver(
-            args.model, args.env, args.algo, args.vec_normalize, density, args.config, args.force, None, args.zero_empty_rows
+            args.model,
+            args.env,
+            args.algo,
+            args.vec_normalize,
+            density,
+            args.config,
+            args.force,
+            None,
+            args.zero_empty_rows,
+            args.unsafe_run_code_from_file,
         )
         print(
             f"{type(driver.model).__name__} from {driver.path}"

@@ -9,7 +9,7 @@ how the observation is laid out.
 
 With ``--model STEM``, one episode of a trained driver (DACERF, DACER, DSAC or SAC, its deterministic actions):
 ``STEM.zip`` with the ``STEM.json`` metadata and
-``STEM_vecnormalize.pkl`` statistics beside it (written by ``examples/train_driving.py --save`` or
+``STEM_vecnormalize.json`` statistics beside it (written by ``examples/train_driving.py --save`` or
 ``benchmarks/export_driver.py``; the models in ``examples/models/``), on the scenario and config it was trained
 with, loaded by ``evaluate_driving.load_driver``. ``--seed`` picks the episode; the default, 10,000, is the first
 episode ``evaluate_driving.py`` evaluates, a seed no training reset uses.

@@ -20,7 +20,7 @@ from its reset seed, and the final evaluation's too; ``--vec-normalize masked`` 
 vehicles (``--vec-normalize`` alone: SB3's ``VecNormalize``, with which the drivers of ``examples/models/`` trained).
 
 ``--save NAME`` writes ``NAME_<scenario>.zip`` (the model), ``NAME_<scenario>.json`` (env id, density, config,
-algorithm: what ``evaluate_driving.py`` and ``--load`` read), ``NAME_<scenario>_vecnormalize.pkl`` with
+algorithm: what ``evaluate_driving.py`` and ``--load`` read), ``NAME_<scenario>_vecnormalize.json`` with
 ``--vec-normalize`` and ``NAME_<scenario>_replay_buffer.pkl`` with ``--save-replay-buffer``. ``--load`` resumes the
 step count, the normalisation statistics and, if saved, the replay buffer (without it, training restarts from an
 empty buffer and waits ``--learning-starts`` steps again).
@@ -61,6 +61,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.common.demonstrations import add_scripted_transitions
+from sb3_dacerf.common.persistence import load_vec_normalize, safe_save, save_vec_normalize
 from sb3_dacerf.common.regime import steps_per_gradient_kwargs
 from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
@@ -193,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
         "demonstration_targets)",
     )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip (+ .json, _vecnormalize.pkl)")
+    parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip (+ .json, _vecnormalize.json)")
     parser.add_argument("--save-replay-buffer", action="store_true", help="also save the replay buffer (for --load)")
     parser.add_argument("--load", help="resume training from a model saved with --save (path with or without .zip)")
     parser.add_argument("--log-interval", type=int, default=1_000, help="print training progress every N steps (0: never)")
@@ -320,7 +321,7 @@ def main(argv: list[str] | None = None) -> None:
             vec_env_cls=SubprocVecEnv if vec_env == "subproc" else DummyVecEnv,
         )
         if load_paths and os.path.isfile(load_paths["vec_normalize"]):
-            env = VecNormalize.load(load_paths["vec_normalize"], env)
+            env = load_vec_normalize(load_paths["vec_normalize"], env)
         elif args.vec_normalize == "masked":
             rows = vehicle_rows(env.get_attr("config")[0])
             env = MaskedVecNormalize(env, rows=rows, norm_obs=True, norm_reward=False)
@@ -353,11 +354,11 @@ def main(argv: list[str] | None = None) -> None:
         if args.save:
             paths = model_paths(f"{args.save}_{name}")
             os.makedirs(os.path.dirname(paths["model"]) or ".", exist_ok=True)
-            model.save(paths["model"])
+            safe_save(model, paths["model"])
             with open(paths["metadata"], "w") as file:
                 json.dump({"env_id": env_id, "density": args.density, "config": args.config, "algo": args.algo}, file)
             if vec_normalize is not None:
-                vec_normalize.save(paths["vec_normalize"])
+                save_vec_normalize(vec_normalize, paths["vec_normalize"])
             if args.save_replay_buffer:
                 model.save_replay_buffer(paths["model"][:-4] + "_replay_buffer.pkl")
             print(f"saved {paths['model']}" + (f" and {paths['vec_normalize']}" if vec_normalize is not None else ""), flush=True)

@@ -2,6 +2,7 @@ import pickle
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -14,6 +15,7 @@ from stable_baselines3.common.envs import SimpleMultiObsEnv
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dacerf import DACER, DACERF, DSAC
+from sb3_dacerf.common.persistence import load_vec_normalize, save_vec_normalize
 from sb3_dacerf.export import export_policy, exportable_policy, load_model, main
 
 ort = pytest.importorskip("onnxruntime")
@@ -326,34 +328,36 @@ class BoxObsEnv(gym.Env):
 
 def vec_normalize_file(tmp_path, env, name: str, **kwargs) -> str:
     path = str(tmp_path / name)
-    VecNormalize(make_vec_env(env), **kwargs).save(path)
+    save_vec_normalize(VecNormalize(make_vec_env(env), **kwargs), path)
     return path
 
 
 def test_command_line_refuses_vec_normalize_statistics_of_another_observation_space(tmp_path, monkeypatch, capsys):
     # Pendulum's observations have 3 entries; each file below would bake wrong statistics or crash the export
     make_model("MlpPolicy").save(tmp_path / "model.zip")
-    (tmp_path / "junk.pkl").write_bytes(b"not a pickle")
+    (tmp_path / "junk.json").write_bytes(b"not JSON")
     with open(tmp_path / "dict.pkl", "wb") as file:
         pickle.dump(dict(mean=0.0), file)
     for statistics, message in [
         # a 1-entry mean broadcasts over 3 entries: without the check, the export succeeded with wrong statistics
         (
-            vec_normalize_file(tmp_path, lambda: BoxObsEnv(1), "one.pkl"),
+            vec_normalize_file(tmp_path, lambda: BoxObsEnv(1), "one.json"),
             r"shape \(1,\) but the model's observations have shape \(3,\)",
         ),
         (
-            vec_normalize_file(tmp_path, lambda: BoxObsEnv(5), "five.pkl"),
+            vec_normalize_file(tmp_path, lambda: BoxObsEnv(5), "five.json"),
             r"shape \(5,\) but the model's observations have shape \(3,\)",
         ),
         (
-            vec_normalize_file(tmp_path, lambda: SimpleMultiObsEnv(discrete_actions=False), "keys.pkl", norm_obs_keys=["vec"]),
+            vec_normalize_file(tmp_path, lambda: SimpleMultiObsEnv(discrete_actions=False), "keys.json", norm_obs_keys=["vec"]),
             r"are for Dict observations \(keys \['vec'\]\)",
         ),
-        (str(tmp_path / "junk.pkl"), "could not read .*junk.pkl as VecNormalize statistics"),
-        (str(tmp_path / "dict.pkl"), "vec_normalize must be a VecNormalize"),
+        (str(tmp_path / "junk.json"), "could not read .*junk.json as observation statistics"),
+        (str(tmp_path / "dict.pkl"), "is a pickle, which runs any code it holds when read"),
+        (str(tmp_path / "dict.pkl") + " --unsafe-run-code-from-file", "vec_normalize must be a VecNormalize"),
     ]:
-        monkeypatch.setattr(sys, "argv", ["export", str(tmp_path / "model.zip"), "--vec-normalize", statistics])
+        statistics, *options = statistics.split()
+        monkeypatch.setattr(sys, "argv", ["export", str(tmp_path / "model.zip"), "--vec-normalize", statistics, *options])
         with pytest.raises(SystemExit) as exit_info:
             main()
         error = capsys.readouterr().err
@@ -371,3 +375,57 @@ def test_dict_model_refuses_statistics_of_another_layout(tmp_path):
     other_shape.obs_rms["vec"].mean = np.zeros(7)
     with pytest.raises(ValueError, match=r"key 'vec' have shape \(7,\) but the model's 'vec' observations have shape \(5,\)"):
         export_policy(model, tmp_path / "p.onnx", vec_normalize=other_shape)
+
+
+MODELS = Path(__file__).resolve().parents[1] / "examples" / "models"
+
+
+@pytest.mark.parametrize("stem", ["dacerf_multilane", "dacerf_intersection", "dacerf_multilane_rl"])
+def test_every_shipped_driver_exports_with_its_statistics(tmp_path, monkeypatch, capsys, stem):
+    model = DACERF.load(MODELS / f"{stem}.zip", device="cpu")
+    statistics = load_vec_normalize(MODELS / f"{stem}_vecnormalize.json")
+    obs = np.random.default_rng(0).normal(size=(64, *model.observation_space.shape)).astype(np.float32)
+    obs[:, -1] = 1.0  # (the last vehicle row present: MaskedVecNormalize keeps a mask entry of 1)
+    expected = model.predict(statistics.normalize_obs(obs), deterministic=True)[0]
+    for format, suffix in (("onnx", "onnx"), ("torchscript", "pt")):
+        out = tmp_path / f"{stem}.{suffix}"
+        arguments = [
+            str(MODELS / f"{stem}.zip"),
+            "--format",
+            format,
+            "--vec-normalize",
+            str(MODELS / f"{stem}_vecnormalize.json"),
+        ]
+        monkeypatch.setattr(sys, "argv", ["export", *arguments, "--out", str(out)])
+        main()
+        assert f"to {out}" in capsys.readouterr().out
+        assert np.abs(run_exported(out, format, obs) - expected).max() <= 1e-5
+
+
+@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
+def test_exported_policies_refuse_non_finite_observations(tmp_path, policy):
+    """ONNX: the flag ``finite`` and NaN actions for those rows; TorchScript: an error."""
+    model = make_model(policy)
+    obs = sample_observations(model, 4)
+    bad = {key: value.copy() for key, value in obs.items()} if isinstance(obs, dict) else obs.copy()
+    array = bad["vec"] if isinstance(bad, dict) else bad
+    array[1, 0], array[2, -1] = np.nan, np.inf
+    expected = model.predict(obs, deterministic=True)[0]
+
+    export_policy(model, tmp_path / "p.onnx")
+    session = ort.InferenceSession(str(tmp_path / "p.onnx"), providers=["CPUExecutionProvider"])
+    feed = dict(bad) if isinstance(bad, dict) else {"obs": bad}
+    actions, finite = session.run(["action", "finite"], feed)
+    assert finite.tolist() == [True, False, False, True]
+    assert np.isnan(actions[[1, 2]]).all() and np.abs(actions[[0, 3]] - expected[[0, 3]]).max() <= 1e-5
+
+    export_policy(model, tmp_path / "p.pt", format="torchscript")
+    scripted = th.jit.load(str(tmp_path / "p.pt"))
+    tensors = {key: th.as_tensor(value) for key, value in bad.items()} if isinstance(bad, dict) else th.as_tensor(bad)
+    with pytest.raises(th.jit.Error, match="the observation has NaN or infinite entries"):
+        scripted(tensors)
+    for row in (0, 3):
+        one = (
+            {key: value[row : row + 1] for key, value in tensors.items()} if isinstance(tensors, dict) else tensors[row : row + 1]
+        )
+        assert np.abs(scripted(one).numpy() - expected[row]).max() <= 1e-5

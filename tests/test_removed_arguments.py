@@ -4,7 +4,6 @@ Arguments of earlier versions, given by a user or read from a saved model: each 
 """
 
 import glob
-import math
 import os
 import warnings
 
@@ -12,10 +11,9 @@ import pytest
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
 
-from sb3_dacerf import DACER, DACERF
+from sb3_dacerf import DACERF
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 
-DATA = os.path.join(os.path.dirname(__file__), "data", "models_0.1.0")
 EXAMPLES = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "models")
 TINY = dict(buffer_size=1, policy_kwargs=dict(net_arch=[8]), seed=0)
 
@@ -113,12 +111,3 @@ def test_the_shipped_drivers_load_without_a_deprecation_warning(name):
     expected = {"dacerf_intersection": "actions", "dacerf_multilane": "langevin"}[name]
     assert isinstance(model.replay_buffer, DemonstrationReplayBuffer)
     assert model.replay_buffer.demonstration_targets == model.replay_buffer_kwargs["demonstration_targets"] == expected
-
-
-def test_dacer_0_1_0_model_loads_its_temperature_as_ent_coef_and_its_optimizer_state():
-    model = DACER.load(os.path.join(DATA, "dacer.zip"))
-    # 0.1.0 saved initial_log_alpha=1.2 and an "alpha_optimizer"
-    assert model.ent_coef == f"auto_{math.exp(1.2)}" and not hasattr(model, "initial_log_alpha")
-    assert model.ent_coef_optimizer is not None and model.ent_coef_optimizer.state_dict()["state"][0]["step"] == 3
-    assert model.ent_coef_optimizer.param_groups[0]["params"][0] is model.actor.log_alpha
-    assert model.ent_coef_optimizer.param_groups[0]["lr"] == model.alpha_learning_rate == 3e-2

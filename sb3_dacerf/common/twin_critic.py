@@ -17,7 +17,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorch
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 
 from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleCritic
-from sb3_dacerf.common.persistence import TwinCriticPersistence, saved_policy_class
+from sb3_dacerf.common.persistence import TwinCriticPersistence, saved_algorithm_name
 from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
 from sb3_dacerf.common.validation import (
     HyperparameterRule,
@@ -38,7 +38,7 @@ __all__ = [
     "integer_at_least",
     "min_q",
     "resolve_target_entropy",
-    "saved_policy_class",
+    "saved_algorithm_name",
 ]
 
 SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAlgorithm")

@@ -1,6 +1,8 @@
 """Small pieces shared by the algorithms of the package."""
 
+import glob
 import os
+import re
 import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager, suppress
@@ -52,7 +54,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     mode = (os.stat(path).st_mode & 0o7777) if path.is_file() else _new_file_mode()
-    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}")
+    remove_stale_temporaries(path)
+    # The writer's process id in the name: remove_stale_temporaries deletes the files of writers no longer running
+    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.{os.getpid()}.", suffix=f".tmp{path.suffix}")
     os.close(descriptor)
     temporary_path = Path(temporary)
     try:
@@ -65,6 +69,30 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with suppress(OSError):
             temporary_path.unlink()
         raise
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> None:
+    """
+    Delete the temporary files that :func:`atomic_path` writes for ``path`` and whose writer process no longer runs
+    (a save killed before it could clean up); those of running writers are kept.
+    """
+    path = Path(path)
+    name = re.compile(rf"\.{re.escape(path.stem)}\.(\d+)\.[^.]+\.tmp{re.escape(path.suffix)}")
+    for temporary in path.parent.glob(f".{glob.escape(path.stem)}.*.tmp{glob.escape(path.suffix)}"):
+        match = name.fullmatch(temporary.name)
+        if match and not _process_runs(int(match.group(1))):
+            with suppress(OSError):
+                temporary.unlink()
+
+
+def _process_runs(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's process
+    return True
 
 
 def save_path_with_suffix(path: str | os.PathLike, suffix: str) -> Path:

@@ -75,6 +75,7 @@ class TwinCriticChecks(OffPolicyAlgorithm):
     #: algorithm's attribute.
     hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
         "batch_size": integer_at_least(1, "a positive integer"),
+        "buffer_size": integer_at_least(1, "a positive integer (the replay buffer's capacity in transitions)"),
         "tau": HyperparameterRule(lambda value: 0 < value <= 1, "in (0, 1]"),
         "gamma": HyperparameterRule(lambda value: 0 <= value <= 1, "in [0, 1]"),
         "n_steps": integer_at_least(1, "a positive integer (1: one-step targets)"),
@@ -110,6 +111,16 @@ class TwinCriticChecks(OffPolicyAlgorithm):
         raise NonFiniteLossError(
             f"{type(self).__name__}: non-finite {name} ({value}) at update {self._n_updates}; {cause}. No parameter was updated."
         )
+
+    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
+        learning_rate = self.lr_schedule(self._current_progress_remaining)
+        if not (isinstance(learning_rate, (int, float, np.number)) and math.isfinite(learning_rate) and learning_rate >= 0):
+            raise ValueError(
+                f"{type(self).__name__}: the learning-rate schedule gave {learning_rate!r} at progress remaining "
+                f"{self._current_progress_remaining:.4g}; a learning rate must be a finite number >= 0 at every progress "
+                "in [0, 1] (e.g. clip the schedule at 0)."
+            )
+        super()._update_learning_rate(optimizers)
 
     def predict(
         self,

@@ -16,15 +16,27 @@ from sb3_dacerf.common.utils import atomic_path
 from sb3_dacerf.dacer.policies import DiffusionActor
 from sb3_dacerf.dacerf.policies import FlowActor
 from sb3_dacerf.dsac.policies import GaussianActor
-from sb3_dacerf.export.wrappers import check_vec_normalize, exportable_policy
+from sb3_dacerf.export.wrappers import FlaggedPolicy, check_vec_normalize, exportable_policy
 
 EXPORT_FORMATS = ("onnx", "torchscript")
 # Observation spaces that SB3's ``preprocess_obs`` handles with traceable tensor operations
 SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
 
 
+def _check_finite(obs: th.Tensor) -> None:
+    # obs * 0 is 0 for a finite entry and NaN for a NaN or infinite one: fewer interpreter steps than isfinite().all()
+    if obs.is_floating_point() and float((obs * 0).sum()) != 0.0:
+        raise ValueError(
+            "the observation has NaN or infinite entries, from which the policy can only compute a meaningless action: "
+            "replace them before calling the policy"
+        )
+
+
 class _ScriptedPolicy(nn.Module):
-    """TorchScript entry point with ``a0`` optional: the graph traced without it (a0 = 0) or the one traced with it."""
+    """
+    TorchScript entry point with ``a0`` optional: the graph traced without it (a0 = 0) or the one traced with it. An
+    observation with NaN or infinite entries raises a ``ValueError``, which reaches the caller as ``torch.jit.Error``.
+    """
 
     def __init__(self, deterministic: th.jit.ScriptModule, stochastic: th.jit.ScriptModule):
         super().__init__()
@@ -32,6 +44,7 @@ class _ScriptedPolicy(nn.Module):
         self.stochastic = stochastic
 
     def forward(self, obs: th.Tensor, a0: th.Tensor | None = None) -> th.Tensor:
+        _check_finite(obs)
         if a0 is None:
             return self.deterministic(obs)
         return self.stochastic(obs, a0)
@@ -41,6 +54,8 @@ class _ScriptedDictPolicy(_ScriptedPolicy):
     """:class:`_ScriptedPolicy` for Dict observation spaces."""
 
     def forward(self, obs: dict[str, th.Tensor], a0: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
+        for value in obs.values():
+            _check_finite(value)
         if a0 is None:
             return self.deterministic(obs)
         return self.stochastic(obs, a0)
@@ -50,6 +65,7 @@ class _ScriptedDiffusionPolicy(_ScriptedPolicy):
     """:class:`_ScriptedPolicy` of a DACER policy, whose optional second input is ``noise``."""
 
     def forward(self, obs: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
+        _check_finite(obs)
         if noise is None:
             return self.deterministic(obs)
         return self.stochastic(obs, noise)
@@ -59,6 +75,8 @@ class _ScriptedDiffusionDictPolicy(_ScriptedPolicy):
     """:class:`_ScriptedDiffusionPolicy` for Dict observation spaces."""
 
     def forward(self, obs: dict[str, th.Tensor], noise: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
+        for value in obs.values():
+            _check_finite(value)
         if noise is None:
             return self.deterministic(obs)
         return self.stochastic(obs, noise)
@@ -86,12 +104,15 @@ def export_policy(
 
     ONNX: inputs ``obs`` (or one input per key of a Dict observation space, named by the key) and the noise (DACERF:
     ``a0``, ``(batch, action_dim)``; DACER: ``noise``, ``(batch, n_diffusion_steps, action_dim)``; DSAC: ``noise``,
-    ``(batch, action_dim)``), output ``action``,
-    batch dimension dynamic. The noise defaults to zeros (an initializer that onnxruntime lets you override:
+    ``(batch, action_dim)``), outputs ``action`` and ``finite``, batch dimension dynamic. ``finite`` ``(batch,)``
+    is false where an observation has a NaN or infinite entry, and that row's action is NaN: check it before acting
+    (ONNX graphs cannot raise). The noise defaults to zeros (an initializer that onnxruntime lets you override:
     ``session.run(None, {"obs": obs})`` is deterministic, ``{"obs": obs, "a0": a0}`` is not); a noise with a batch of 1
     is shared by all the observations. TorchScript: ``policy(obs)`` or ``policy(obs, noise)``, with ``obs`` a tensor
-    or a dict of tensors. Observations have the model's observation space layout (channel-first images, as after
-    ``VecTransposeImage``) and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch dimension.
+    or a dict of tensors; an observation with a NaN or infinite entry raises ``torch.jit.Error`` (the graph's
+    ``ValueError``). Observations have the model's observation space layout (channel-first images, as after
+    ``VecTransposeImage``) and dtype (``uint8`` images, ``int64`` discrete observations), with a leading batch
+    dimension.
 
     :param model: A DACERF, DACER or DSAC model (trained or not)
     :param path: File to write (``.onnx`` or ``.pt`` by convention); its folder must exist. The file is written
@@ -100,7 +121,7 @@ def export_policy(
     :param n_sampling_steps: DACERF: number of Euler steps, fixed in the graph (the model's ``n_sampling_steps`` by
         default). DACER: leave it out; its ``n_diffusion_steps`` reverse steps are fixed by its noise schedule. DSAC: leave
         it out
-    :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``VecNormalize.load``), if any:
+    :param vec_normalize: The VecNormalize wrapper the model was trained with (e.g. from ``load_vec_normalize``), if any:
         its observation normalisation is then applied inside the graph, so the graph takes raw observations; statistics
         of another observation layout are refused (:func:`check_vec_normalize`)
     :param opset_version: ONNX opset
@@ -146,19 +167,19 @@ def export_policy(
     obs_names = ["obs"] if module.obs_keys is None else module.obs_keys
     # The noise's batch is its own dimension: 1 (one noise for the whole batch, as the default) or the observations'
     noise_name = module.noise_name
-    dynamic_axes = {**{name: {0: "batch"} for name in [*obs_names, "action"]}, noise_name: {0: f"{noise_name}_batch"}}
+    dynamic_axes = {**{name: {0: "batch"} for name in [*obs_names, "action", "finite"]}, noise_name: {0: f"{noise_name}_batch"}}
     # Written whole or not at all: a failed write leaves a previous file at `path` as it was
     with atomic_path(path) as temporary:
         with warnings.catch_warnings():
             # torch>=2.9 deprecates the TorchScript-based exporter; the torch.export one needs onnxscript, not a dependency
             warnings.simplefilter("ignore", DeprecationWarning)
             th.onnx.export(
-                module,
+                FlaggedPolicy(module),
                 (obs, noise),
                 str(temporary),
                 dynamo=False,
                 input_names=[*obs_names, noise_name],
-                output_names=["action"],
+                output_names=["action", "finite"],
                 dynamic_axes=dynamic_axes,
                 opset_version=opset_version,
             )

@@ -16,6 +16,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
 from sb3_dacerf.common.policies import GenerativeActor
+from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 from sb3_dacerf.dacer.policies import DiffusionActor
 from sb3_dacerf.dacerf.policies import FlowActor
 from sb3_dacerf.dsac.policies import GaussianActor
@@ -66,8 +67,9 @@ class ExportablePolicy(nn.Module, ABC):
             self.clip_obs = float(vec_normalize.clip_obs)
         # MaskedVecNormalize's table of optional rows (empty rows zeros, the mask kept 0 / 1): (start, count, size)
         self.masked_rows: tuple[int, int, int] | None = None
-        if self.normalized_keys == ["obs"] and getattr(vec_normalize, "rows", None) is not None:
-            start, count, size = vec_normalize.rows  # type: ignore[union-attr]  # (only MaskedVecNormalize has rows)
+        # (getattr on a VecNormalize without its environment would recurse in VecEnvWrapper.__getattr__)
+        if self.normalized_keys == ["obs"] and isinstance(vec_normalize, MaskedVecNormalize):
+            start, count, size = vec_normalize.rows
             self.masked_rows = (int(start), int(count), int(size))
 
     @property
@@ -244,6 +246,32 @@ class ExportableGaussianPolicy(ExportablePolicy):
         if noise is None:
             return th.tanh(mean)
         return th.tanh(mean + log_std.clamp(self.log_std_min, self.log_std_max).exp() * noise)
+
+
+class FlaggedPolicy(nn.Module):
+    """
+    The ONNX graph of an :class:`ExportablePolicy`, which cannot raise: ``(action, finite)``, ``finite[i]`` false
+    (and ``action[i]`` NaN) where observation ``i`` has a NaN or infinite entry, so that no finite-looking action is
+    computed from it.
+    """
+
+    def __init__(self, policy: ExportablePolicy):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, obs: PyTorchObs, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
+        # obs * 0 is 0 for a finite entry and NaN for a NaN or infinite one, so each row's sum is 0 or NaN: added to
+        # the action it makes the row NaN, compared with 0 it is the flag (fewer graph nodes than IsInf / IsNaN / Where)
+        values = list(obs.values()) if isinstance(obs, dict) else [obs]
+        # Integer observations (images, discrete) are always finite
+        poison = [
+            (value * 0).reshape(value.shape[0], -1).sum(dim=1, keepdim=True) for value in values if value.is_floating_point()
+        ]
+        actions = self.policy(obs, noise)
+        if not poison:
+            return actions, th.ones(actions.shape[0], dtype=th.bool, device=actions.device)
+        total = poison[0] if len(poison) == 1 else th.cat(poison, dim=1).sum(dim=1, keepdim=True)
+        return actions + total.to(actions.dtype), total[:, 0] == 0
 
 
 def _linear(layer: nn.Module) -> nn.Linear:
