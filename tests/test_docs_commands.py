@@ -93,11 +93,7 @@ NOT_RUN = {
     "make check": "the test suite itself, with the lint, type and docs checks (CI runs it)",
     "python -m sphinx -W --keep-going -b html docs docs/_build/html": "the documentation build, which make check runs",
 }
-KNOWN_FAILURES = {
-    "--vec-normalize examples/models/dacerf_multilane_vecnormalize.pkl": (
-        "export with --vec-normalize ends in a RecursionError while loading the VecNormalize statistics"
-    ),
-}
+KNOWN_FAILURES: dict[str, str] = {}
 FENCE = re.compile(r"^```(bash|python)[^\n]*\n(.*?)^```", re.M | re.S)
 
 
