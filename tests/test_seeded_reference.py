@@ -33,7 +33,12 @@ CASES: dict[str, tuple[type, dict[str, Any]]] = {
             policy_kwargs=dict(net_arch=[64, 64], critic="batch_renorm", optimizer_kwargs=dict(betas=(0.5, 0.999))),
         ),
     ),
-    "dacerf_fixed_alpha": (DACERF, dict(ent_coef=0.5, flow_matching_weights="paper", policy_kwargs=dict(net_arch=[64, 64]))),
+    # verbose=2 turns on the diagnostics, which sample the policy for its entropy and spread when α is fixed (the
+    # reference was recorded when they ran at every 250th actor update, the first included)
+    "dacerf_fixed_alpha": (
+        DACERF,
+        dict(ent_coef=0.5, flow_matching_weights="paper", verbose=2, policy_kwargs=dict(net_arch=[64, 64])),
+    ),
     "dacer": (DACER, dict(alpha_update_interval=50, policy_kwargs=dict(net_arch=[64, 64], n_diffusion_steps=5))),
     "dsac": (DSAC, dict(policy_kwargs=dict(net_arch=[64, 64]))),
 }

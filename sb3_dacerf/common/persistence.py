@@ -15,9 +15,10 @@ from typing import Any
 import cloudpickle
 import torch as th
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.save_util import load_from_zip_file
 
-from sb3_dacerf.common.ensemble import EnsembleCritic, convert_separate_critics_optimizer
+from sb3_dacerf.common.policies import EnsembleCritic, convert_separate_critics_optimizer
 from sb3_dacerf.common.utils import atomic_path, save_path_with_suffix
 
 
@@ -28,7 +29,7 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
     policy, with the optimizers of the actor and of the critics. It adds no constructor argument.
     """
 
-    critic: EnsembleCritic
+    critic: BaseModel
 
     def save(
         self,

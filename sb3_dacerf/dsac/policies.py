@@ -207,9 +207,8 @@ class DSACPolicy(TwinCriticPolicy):
     actor_class = GaussianActor
     actor: GaussianActor
     actor_target: GaussianActor
-    # Gaussian critics (a mean and a standard deviation per critic), not the Q-value ensemble of the base class
-    critic: GaussianCritic  # type: ignore[assignment]
-    critic_target: GaussianCritic  # type: ignore[assignment]
+    critic: GaussianCritic
+    critic_target: GaussianCritic
 
     def __init__(
         self,
@@ -256,7 +255,7 @@ class DSACPolicy(TwinCriticPolicy):
         self.actor_target.load_state_dict(self.actor.state_dict())
         self.actor_target.set_training_mode(False)
 
-    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> GaussianCritic:  # type: ignore[override]  # a GaussianCritic is a ContinuousCritic
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> GaussianCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return GaussianCritic(**critic_kwargs, layer_norm=self.critic_kind == "layer_norm").to(self.device)
 
