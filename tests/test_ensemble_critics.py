@@ -10,22 +10,22 @@ from copy import deepcopy
 import numpy as np
 import pytest
 import torch as th
+from sb3_dacerf.common.langevin import autograd_action_gradient, langevin_targets
 from stable_baselines3.common.envs import IdentityEnvBox
 from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
 from torch.nn import functional as F
 
 from sb3_dacerf import DACER, DACERF
-from sb3_dacerf.common.ensemble import (
+from sb3_dacerf.common.policies import (
     EnsembleBatchRenorm,
     EnsembleCritic,
     EnsembleLayerNorm,
     EnsembleLinear,
     convert_separate_critics_optimizer,
 )
-from sb3_dacerf.common.flow_matching import actor_loss_weights, flow_matching_loss
-from sb3_dacerf.common.langevin import autograd_action_gradient, langevin_targets
-from sb3_dacerf.common.utils import frozen
+from sb3_dacerf.common.twin_critic import frozen
+from sb3_dacerf.dacerf.dacerf import actor_loss_weights, flow_matching_loss
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
 CRITICS = {

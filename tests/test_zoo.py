@@ -23,7 +23,7 @@ import rl_zoo3.hyperparams_opt  # noqa: E402
 import rl_zoo3.utils  # noqa: E402
 
 from sb3_dacerf import DACER, DACERF, DSAC  # noqa: E402
-from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleLayerNorm  # noqa: E402
+from sb3_dacerf.common.policies import BatchRenormCritic, EnsembleLayerNorm  # noqa: E402
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS  # noqa: E402
 from sb3_dacerf.envs.dmc import DMC_ENV_IDS  # noqa: E402
 from sb3_dacerf.zoo import (  # noqa: E402
