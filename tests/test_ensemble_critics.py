@@ -1,16 +1,12 @@
 """Ensemble critics: each layer of all the critics in one batched product, equal to separate critic networks."""
 
 import functools
-import io
-import os
-import zipfile
 from collections import OrderedDict
 from copy import deepcopy
 
 import numpy as np
 import pytest
 import torch as th
-from sb3_dacerf.common.langevin import autograd_action_gradient, langevin_targets
 from stable_baselines3.common.envs import IdentityEnvBox
 from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
@@ -22,12 +18,24 @@ from sb3_dacerf.common.policies import (
     EnsembleCritic,
     EnsembleLayerNorm,
     EnsembleLinear,
-    convert_separate_critics_optimizer,
+    twin_critic_loss,
 )
 from sb3_dacerf.common.twin_critic import frozen
-from sb3_dacerf.dacerf.dacerf import actor_loss_weights, flow_matching_loss
+from sb3_dacerf.dacerf.dacerf import actor_loss_weights, flow_matching_loss, langevin_targets
 
-DATA = os.path.join(os.path.dirname(__file__), "data")
+
+def autograd_action_gradient(q_function):
+    """∇_a Q(a) of a differentiable ``q_function`` by autograd (the reference)."""
+
+    def gradient(actions: th.Tensor) -> th.Tensor:
+        with th.enable_grad():
+            actions = actions.detach().requires_grad_(True)
+            (grad,) = th.autograd.grad(q_function(actions).sum(), actions)
+        return grad
+
+    return gradient
+
+
 CRITICS = {
     "mlp": dict(critic="mlp"),
     "layer_norm": dict(critic="layer_norm"),
@@ -110,10 +118,9 @@ def test_critics_equal_separate_networks_with_the_same_weights(critics):
     networks = separate_networks(model.critic)
     target_networks = separate_networks(model.critic_target)
     th.manual_seed(11)
-    terms = model.critic_terms(batch)
-    th.manual_seed(11)
     with th.no_grad():
         next_actions = model.actor(batch.next_observations)
+    critic_loss = twin_critic_loss(model.critic, model.critic_target, batch, next_actions, model.gamma)
     if CRITICS[critics].get("critic") == "batch_renorm":  # one joint pass in training mode, no target networks
         for network in networks:
             network.train()
@@ -133,10 +140,9 @@ def test_critics_equal_separate_networks_with_the_same_weights(critics):
         current = separate_q_values(model.critic, networks, batch.observations, batch.actions)
     target = batch.rewards + (1 - batch.dones) * model.gamma * next_q_values.min(dim=1, keepdim=True).values
     loss = 0.5 * sum(F.mse_loss(q_values, target) for q_values in current)
-    assert th.allclose(terms["target_q_values"], target, rtol=1e-5, atol=1e-5)
-    assert th.allclose(terms["loss"], loss, rtol=1e-5, atol=1e-5)
+    assert th.allclose(critic_loss, loss, rtol=1e-5, atol=1e-5)
     model.critic.optimizer.zero_grad()
-    terms["loss"].backward()
+    critic_loss.backward()
     loss.backward()
     linears = [index for index, module in enumerate(model.critic.ensemble) if isinstance(module, EnsembleLinear)]
     for member, network in enumerate(networks):
@@ -164,7 +170,7 @@ def test_critics_equal_separate_networks_with_the_same_weights(critics):
     th.manual_seed(12)
     with frozen(parameters):
         targets = langevin_targets(
-            autograd_action_gradient(min_q),
+            autograd_action_gradient(min_q),  # the reference: autograd through the separate networks
             batch.actions,
             model.langevin_steps,
             model.langevin_step_size,
@@ -174,7 +180,7 @@ def test_critics_equal_separate_networks_with_the_same_weights(critics):
             q_star, q_buffer = min_q(targets), min_q(batch.actions)
         actor_features = model.actor.extract_features(batch.observations, model.actor.features_extractor)
         q_pi = min_q(model.actor.sample(actor_features, model.actor.draw_noise(actor_features)))
-        kappa, lambda_f = actor_loss_weights(model.flow_matching_weights, q_pi, q_star, q_buffer, model.flow_matching_coef)
+        kappa, lambda_f = actor_loss_weights(model.flow_matching_weights, q_star, q_buffer, model.flow_matching_coef)
         flow_error = flow_matching_loss(functools.partial(model.actor.velocity, actor_features), targets)
     expected = dict(
         targets=targets,
@@ -192,94 +198,6 @@ def test_critics_equal_separate_networks_with_the_same_weights(critics):
         strict=True,
     ):
         assert th.allclose(got, want, rtol=1e-5, atol=1e-5)
-
-
-def separate_state_dict(critic: EnsembleCritic, prefix: str, names: tuple[str, ...]) -> dict[str, th.Tensor]:
-    """The critic's entries as earlier versions saved them: ``<name><j>.<k>.*`` for each name of ``names``."""
-    entries = {}
-    for index, module in enumerate(critic.ensemble):
-        for entry, value in [*module.named_parameters(), *module.named_buffers()]:
-            for member in range(critic.n_critics):
-                member_value = value if entry == "steps" else value[member]
-                if isinstance(module, EnsembleLinear) and entry == "weight":
-                    member_value = member_value.t()
-                for name in names:
-                    separator = "." if name == "q_networks" else ""
-                    entries[f"{prefix}{name}{separator}{member}.{index}.{entry}"] = member_value.detach().clone()
-    return entries
-
-
-@pytest.mark.parametrize("critics", ["mlp", "layer_norm", "batch_renorm"])
-def test_separate_critic_entries_and_their_optimizer_state_load_into_the_ensemble(critics):
-    model = trained_model(critics)
-    # the state dict and critic optimizer state of the same critics as separate networks (qf<j> and q_networks.<j>)
-    policy_state = {key: value for key, value in model.policy.state_dict().items() if ".ensemble." not in key}
-    for prefix in ("critic.", "critic_target."):
-        policy_state.update(separate_state_dict(getattr(model, prefix[:-1]), prefix, ("qf", "q_networks")))
-    current = model.critic.optimizer.state_dict()
-    per_member = len(current["param_groups"][0]["params"])
-    old_state = {}
-    for position in range(per_member):
-        for member in range(model.critic.n_critics):
-            state = current["state"][position]
-            old_state[member * per_member + position] = {
-                key: (value[member].t() if value.dim() == 3 else value[member]) if value.dim() > 0 else value
-                for key, value in state.items()
-            }
-    old_optimizer = {
-        "state": old_state,
-        "param_groups": [{**current["param_groups"][0], "params": list(range(model.critic.n_critics * per_member))}],
-    }
-    other = trained_model(critics, seed=1)
-    other.set_parameters({"policy": policy_state, "critic.optimizer": old_optimizer}, exact_match=False)
-    for key, value in model.policy.state_dict().items():
-        assert th.equal(other.policy.state_dict()[key], value), key
-    converted = other.critic.optimizer.state_dict()
-    for position, state in current["state"].items():
-        for key, value in state.items():
-            assert th.equal(converted["state"][position][key], value), (position, key)
-    with pytest.raises(ValueError, match="Cannot convert the saved critic optimizer"):
-        convert_separate_critics_optimizer({"state": {}, "param_groups": [{"params": [0, 1, 2]}]}, model.critic, n_leading=0)
-
-
-def zip_entries(path: str, name: str) -> dict:
-    with zipfile.ZipFile(path) as archive:
-        return th.load(io.BytesIO(archive.read(name)), weights_only=False)
-
-
-@pytest.mark.parametrize("path", [os.path.join(DATA, "models_0.1.0", f"{name}.zip") for name in ("dacerf", "dacer")])
-def test_models_saved_with_separate_critics_load_with_the_same_q_values(path):
-    """sb3_dacerf 0.1.0's zips hold separate critic networks (SB3's MLP critics): loaded, the ensemble computes their
-    Q-values, and the critic optimizer's state is theirs, stacked. Separate LayerNorm and batch-renorm critics are
-    converted by test_separate_critic_entries_and_their_optimizer_state_load_into_the_ensemble."""
-    model_class = DACER if os.path.basename(path) == "dacer.zip" else DACERF
-    model = model_class.load(path, device="cpu")
-    saved = zip_entries(path, "policy.pth")
-    rng = np.random.default_rng(0)
-    observations = th.as_tensor(rng.normal(size=(9, *model.observation_space.shape)), dtype=th.float32)
-    actions = th.as_tensor(rng.uniform(-1, 1, size=(9, *model.action_space.shape)), dtype=th.float32)
-    for prefix in ("critic", "critic_target"):
-        critic = getattr(model, prefix)
-        expected = []
-        features = critic.extract_features(observations, critic.features_extractor)
-        for member in range(critic.n_critics):
-            x = th.cat([features, actions], dim=1)
-            layers = sorted({int(key.split(".")[2]) for key in saved if key.startswith(f"{prefix}.qf{member}.")})
-            for position, layer in enumerate(layers):
-                x = F.linear(x, saved[f"{prefix}.qf{member}.{layer}.weight"], saved[f"{prefix}.qf{member}.{layer}.bias"])
-                if position < len(layers) - 1:
-                    x = critic.ensemble[layer + 1](x)  # the activation
-            expected.append(x)
-        with th.no_grad():
-            assert th.allclose(critic.q_values(observations, actions), th.stack(expected), atol=1e-5), prefix
-    saved_optimizer = zip_entries(path, "critic.optimizer.pth")
-    state = model.critic.optimizer.state_dict()["state"]
-    if saved_optimizer["state"]:
-        per_member = len(state)
-        for position, (name, _) in enumerate(model.critic.ensemble.named_parameters()):
-            stacked = th.stack([saved_optimizer["state"][member * per_member + position]["exp_avg"] for member in range(2)])
-            exp_avg = state[position]["exp_avg"]
-            assert th.equal(exp_avg, stacked.transpose(1, 2) if name.endswith("weight") and stacked.dim() == 3 else stacked)
 
 
 @pytest.mark.parametrize("model_class", [DACERF, DACER])

@@ -66,8 +66,8 @@ class GenerativeActor(BasePolicy, ABC):
     action_space: spaces.Box
     #: The generator's network of (state features, action, time), built by the subclass
     network: nn.Sequential
-    #: ``log α`` of the entropy regulator: a buffer (saved with the policy), set and learned by the algorithm
-    log_alpha: th.Tensor
+    #: ``log α`` of the entropy regulator, set (and learned, by its own optimizer) by the algorithm
+    log_alpha: nn.Parameter
 
     def __init__(
         self,
@@ -92,8 +92,9 @@ class GenerativeActor(BasePolicy, ABC):
         self.activation_fn = activation_fn
         self.action_dim = get_action_dim(self.action_space)
         self.exploration_noise_scale = exploration_noise_scale
-        # log α = 0 (α = 1) until the algorithm sets it
-        self.register_buffer("log_alpha", th.zeros(()))
+        # The temperature log α = 0 (α = 1) until the algorithm sets it: a parameter of the actor, whose exploration
+        # noise it scales (saved with the policy), trained by the algorithm's own optimizer when α is learned
+        self.log_alpha = nn.Parameter(th.zeros(()), requires_grad=False)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -636,7 +637,8 @@ class TwinCriticPolicy(BasePolicy):
     def _build(self, lr_schedule: Schedule) -> None:
         self.actor = self.make_actor()
         self.actor.optimizer = self.optimizer_class(
-            self.actor.parameters(),
+            # the temperature log α, a parameter of generative actors, has the algorithm's optimizer
+            [param for name, param in self.actor.named_parameters() if name != "log_alpha"],
             lr=lr_schedule(1),  # type: ignore[call-arg]
             **self.optimizer_kwargs,
         )

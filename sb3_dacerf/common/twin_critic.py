@@ -139,7 +139,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         Set ``log α`` (``log_alpha``, updated in place) from ``ent_coef``, resolve ``target_entropy``, and create
         the temperature's optimizer when ``α`` is learned.
 
-        :param log_alpha: The tensor that holds ``log α``
+        :param log_alpha: The leaf tensor that holds ``log α``
         :param auto_target_entropy: The target entropy of ``target_entropy="auto"``
         :param learning_rate: Adam's learning rate for ``log α``
         """
@@ -147,8 +147,9 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         alpha = initial_ent_coef(self.ent_coef, self.auto_ent_coef, self.ent_coef_values)
         with th.no_grad():
             log_alpha.fill_(math.log(alpha) if alpha > 0 else -math.inf)
+        log_alpha.requires_grad_(isinstance(self.ent_coef, str))
         if isinstance(self.ent_coef, str):
-            self.ent_coef_optimizer = th.optim.Adam([log_alpha.requires_grad_(True)], lr=learning_rate)
+            self.ent_coef_optimizer = th.optim.Adam([log_alpha], lr=learning_rate)
 
     def _critic_parameters(self) -> list[th.nn.Parameter]:
         """The critic's own parameters (not those of a features extractor shared with the actor), to freeze."""

@@ -46,7 +46,8 @@ class FlowActor(GenerativeActor):
         super().__init__(*args, **kwargs)
         self.n_sampling_steps = n_sampling_steps
         # No exploration noise (α = 0) until the algorithm sets log α
-        self.log_alpha.fill_(float("-inf"))
+        with th.no_grad():
+            self.log_alpha.fill_(float("-inf"))
         # Input: state features, the point a_t on the path, and the time t
         self.network = nn.Sequential(
             *create_mlp(self.features_dim + self.action_dim + 1, self.action_dim, self.net_arch, self.activation_fn)

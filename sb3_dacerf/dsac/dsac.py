@@ -260,7 +260,9 @@ class DSAC(TwinCriticAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        self._setup_temperature(self.actor.log_alpha, -float(get_action_dim(self.action_space)), self.alpha_learning_rate)
+        #: log α, trained by its own loss and optimizer when α is learned (as SB3's SAC)
+        self.log_ent_coef = th.zeros((), device=self.device)
+        self._setup_temperature(self.log_ent_coef, -float(get_action_dim(self.action_space)), self.alpha_learning_rate)
 
     def _create_aliases(self) -> None:
         super()._create_aliases()
@@ -280,7 +282,7 @@ class DSAC(TwinCriticAlgorithm):
                 logs.setdefault(key, []).append(value)
 
         self.logger.record("train/n_updates", self._n_updates)
-        self.logger.record("train/ent_coef", self.actor.log_alpha.exp().item())
+        self.logger.record("train/ent_coef", self.log_ent_coef.exp().item())
         for key, values in logs.items():
             self.logger.record(f"train/{key}", np.mean(values))
         if self.running_std is not None:
@@ -298,7 +300,7 @@ class DSAC(TwinCriticAlgorithm):
         update_actor = (self._n_updates - 1) % self.policy_delay == 0
         # For n-step replay, discount factor is gamma**n_steps (when no early termination)
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-        ent_coef = self.actor.log_alpha.exp().item()
+        ent_coef = self.log_ent_coef.exp().item()
 
         with th.no_grad():
             # a' ~ π̄(·|s') from the target policy; both target critics' distributions at (s', a')
@@ -356,11 +358,11 @@ class DSAC(TwinCriticAlgorithm):
             if self.ent_coef_optimizer is not None:
                 # J(α) = -log α (E[log π] + H_target): ∂J/∂log α = H - H_target
                 ent_coef_gradient = -(log_prob.detach().mean().item() + float(self.target_entropy))
-                ent_coef_loss = self.actor.log_alpha * ent_coef_gradient
+                ent_coef_loss = self.log_ent_coef * ent_coef_gradient
                 self.ent_coef_optimizer.zero_grad()
                 ent_coef_loss.backward()
                 self.ent_coef_optimizer.step()
-                logs["ent_coef_loss"] = self.actor.log_alpha.item() * ent_coef_gradient
+                logs["ent_coef_loss"] = self.log_ent_coef.item() * ent_coef_gradient
             self._update_targets()
         return logs
 
@@ -371,3 +373,7 @@ class DSAC(TwinCriticAlgorithm):
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "actor_target"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, saved_variables = super()._get_torch_save_params()
+        return state_dicts, [*saved_variables, "log_ent_coef"]

@@ -3,79 +3,88 @@ from typing import Any
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN, create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
+from sb3_dacerf.common.policies import TwinCriticPolicy
 
 #: Added to ``1 - tanh(u)²`` in the log-density of a tanh-squashed action, as in the authors' code and SB3
 TANH_EPSILON = 1e-6
 
 
-class GaussianActor(GenerativeActor):
+class GaussianActor(BasePolicy):
     """
     Tanh-Gaussian actor of DSAC: ``a = tanh(u)``, ``u ~ N(μ(s), σ(s)²)``, with ``μ`` and ``log σ`` the two halves of
     the output of one network (:attr:`network`, ``2 · action_dim`` outputs, as the authors' ``mlp_shared`` policy)
-    and ``log σ`` clipped to ``[log_std_min, log_std_max]``.
+    and ``log σ`` clipped to ``[log_std_min, log_std_max]``. The Gaussian is the exploration: no noise is added on top.
 
-    As a :class:`sb3_dacerf.common.policies.GenerativeActor` it turns noise into actions: :meth:`sample` with
-    ``noise = ξ ~ N(0, I)`` is ``tanh(μ + σ ξ)`` (the reparameterised sample), and ``noise=None`` gives ``tanh(μ)``,
-    the deterministic action. The Gaussian is the exploration: no noise is added on top (:attr:`exploration_std`
-    is 0). ``log_alpha`` holds ``log α`` of the entropy temperature, set and learned by the algorithm.
-
-    Takes the arguments of :class:`sb3_dacerf.common.policies.GenerativeActor` (``observation_space``,
-    ``action_space``, ``net_arch``, ``features_extractor``, ``features_dim``, ``activation_fn``,
-    ``normalize_images``; ``exploration_noise_scale`` must stay 0) and:
-
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param net_arch: Hidden layer sizes of the network
+    :param features_extractor: Network to extract features (a CNN when using images, a nn.Flatten() layer otherwise)
+    :param features_dim: Number of features
+    :param activation_fn: Activation function
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
     :param log_std_min: Lower clip of ``log σ`` (-20, the authors' and SB3's)
     :param log_std_max: Upper clip of ``log σ`` (0.5, the authors'; SB3's SAC uses 2)
     """
 
+    action_space: spaces.Box
+
     def __init__(
         self,
-        *args: Any,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: nn.Module,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
         log_std_min: float = -20.0,
         log_std_max: float = 0.5,
-        **kwargs: Any,
     ):
-        kwargs.setdefault("exploration_noise_scale", 0.0)
-        super().__init__(*args, **kwargs)
-        if self.exploration_noise_scale != 0.0:
-            raise ValueError(
-                f"GaussianActor explores by its own standard deviation: exploration_noise_scale="
-                f"{self.exploration_noise_scale!r} must be 0 (use action_noise for extra noise)"
-            )
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=features_extractor,
+            normalize_images=normalize_images,
+            squash_output=True,
+        )
         if not (math.isfinite(log_std_min) and math.isfinite(log_std_max) and log_std_min < log_std_max):
             raise ValueError(
                 f"Invalid log_std_min={log_std_min!r}, log_std_max={log_std_max!r}: they must be finite numbers with "
                 "log_std_min < log_std_max (the authors' are -20 and 0.5)"
             )
+        self.net_arch = net_arch
+        self.features_dim = features_dim
+        self.activation_fn = activation_fn
+        self.action_dim = get_action_dim(self.action_space)
         self.log_std_min = float(log_std_min)
         self.log_std_max = float(log_std_max)
         self.network = nn.Sequential(*create_mlp(self.features_dim, 2 * self.action_dim, self.net_arch, self.activation_fn))
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(log_std_min=self.log_std_min, log_std_max=self.log_std_max)
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                features_dim=self.features_dim,
+                activation_fn=self.activation_fn,
+                features_extractor=self.features_extractor,
+                log_std_min=self.log_std_min,
+                log_std_max=self.log_std_max,
+            )
+        )
         return data
 
     @property
     def noise_shape(self) -> tuple[int, ...]:
         """``(action_dim,)``: the standard normal ``ξ`` of ``u = μ + σ ξ``."""
         return (self.action_dim,)
-
-    @property
-    def exploration_std(self) -> th.Tensor:
-        """0: the Gaussian's own ``σ`` explores, nothing is added."""
-        return th.zeros_like(self.log_alpha)
-
-    def add_exploration_noise(self, actions: th.Tensor) -> th.Tensor:
-        """:return: ``actions`` itself (the Gaussian's own ``σ`` explores; no random number is drawn)"""
-        return actions
 
     def distribution_parameters(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
@@ -95,6 +104,15 @@ class GaussianActor(GenerativeActor):
         if noise is None:
             return th.tanh(mean)
         return th.tanh(mean + log_std.exp() * noise)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        features = self.extract_features(obs, self.features_extractor)
+        if deterministic:
+            return self.sample(features)
+        return self.sample(features, th.randn((features.shape[0], self.action_dim), device=features.device, dtype=features.dtype))
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self(observation, deterministic)
 
     def sample_with_log_prob(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
