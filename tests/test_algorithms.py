@@ -121,12 +121,13 @@ def test_invalid_shared_hyperparameters_name_their_valid_range(model_class, name
 @pytest.mark.parametrize("ent_coef, alpha, learned", [("auto_0.5", 0.5, True), (0.2, 0.2, False), (0, 0.0, False)])
 def test_ent_coef_sets_the_initial_temperature(model_class, ent_coef, alpha, learned):
     model = model_class("MlpPolicy", "Pendulum-v1", ent_coef=ent_coef)
-    assert model.actor.log_alpha.exp().item() == pytest.approx(alpha)
+    assert log_alpha(model).exp().item() == pytest.approx(alpha)
+    assert log_alpha(model).requires_grad == learned
     assert (model.ent_coef_optimizer is not None) == learned
     # "auto": learned, from each algorithm's own start (DACER-F and DACER: α = 3; DSAC: α = e)
     auto = model_class("MlpPolicy", "Pendulum-v1", ent_coef="auto")
     assert auto.ent_coef_optimizer is not None
-    assert auto.actor.log_alpha.exp().item() == pytest.approx(math.e if model_class is DSAC else 3.0)
+    assert log_alpha(auto).exp().item() == pytest.approx(math.e if model_class is DSAC else 3.0)
 
 
 def test_learns_and_logs(model_class, fast, tmp_path):
@@ -150,7 +151,7 @@ def test_save_load_gives_identical_predictions(model_class, fast, tmp_path):
     model.save(tmp_path / "model")
     loaded = model_class.load(tmp_path / "model")
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], actions)
-    assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item()
+    assert log_alpha(loaded).item() == log_alpha(model).item()
 
     # The policy alone (sb3-contrib's test_save_load_policy), and the actor alone
     model.policy.save(tmp_path / "policy.pkl")
@@ -200,6 +201,12 @@ def test_discrete_actions_are_refused_with_advice(model_class):
         model_class("MlpPolicy", "CartPole-v1")
 
 
+def log_alpha(model) -> th.Tensor:
+    """``log α``: a parameter of DACER-F's and DACER's actors (it scales their exploration noise), DSAC's own."""
+    return model.log_ent_coef if isinstance(model, DSAC) else model.actor.log_alpha
+
+
+@pytest.mark.parametrize("model_class", [DACER, DACERF])
 def test_actor_interface(model_class, fast):
     """The contract of GenerativeActor: sample(features, noise), draw_noise, add_exploration_noise, act, forward."""
     model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
@@ -232,7 +239,8 @@ def test_actor_interface(model_class, fast):
 
     # No exploration noise (and no random draw) at α = 0
     quiet = copy.deepcopy(actor)
-    quiet.log_alpha.fill_(-math.inf)
+    with th.no_grad():
+        quiet.log_alpha.fill_(-math.inf)
     state = th.get_rng_state()
     assert quiet.add_exploration_noise(clean) is clean
     assert th.equal(th.get_rng_state(), state)
