@@ -238,7 +238,6 @@ def sample_dsac_params(
         "initial_ent_coef": trial.suggest_categorical("initial_ent_coef", [0.1, 1.0, 2.718]),  # authors: e
         "alpha_learning_rate": trial.suggest_float("alpha_learning_rate", 3e-5, 3e-3, log=True),
         "tau_b": trial.suggest_float("tau_b", 1e-4, 0.05, log=True),
-        "critic_loss": trial.suggest_categorical("critic_loss", ["dsac-v2", "gops"]),
     }
     trial.set_user_attr("batch_size", 2 ** sampled["batch_size_pow"])
     return convert_dsac_params(sampled, policy_kwargs)

@@ -22,7 +22,7 @@ ort = pytest.importorskip("onnxruntime")
 TINY = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32]), seed=0)
 # DACER with the linear noise schedule: an untrained model's deterministic actions are then inside the bounds (with
 # the cosine schedule most are clipped, which would hide differences); the cosine schedule is tested on its own
-TINY_DACER = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32], beta_schedule="linear", n_diffusion_steps=5), seed=0)
+TINY_DACER = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32], n_diffusion_steps=5), seed=0)
 
 
 class DiscreteObsEnv(gym.Env):

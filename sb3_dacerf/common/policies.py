@@ -559,7 +559,7 @@ class TwinCriticPolicy(BasePolicy):
     :param optimizer_kwargs: Additional keyword arguments,
         excluding the learning rate, to pass to the optimizer
     :param n_critics: Number of critic networks to create (run together, each layer of all of them one batched
-        matrix product: :class:`~sb3_dacerf.common.ensemble.EnsembleCritic`)
+        matrix product: :class:`EnsembleCritic`)
     :param share_features_extractor: Whether to share or not the features extractor
         between the actor and the critic (this saves computation time)
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
