@@ -19,7 +19,7 @@ import numpy as np
 import torch as th
 
 from sb3_dacerf import DACERF
-from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS
+from sb3_dacerf.dacerf.dacerf import FLOW_MATCHING_WEIGHTS
 
 TRANSFORMS = {"r": (1.0, 0.0), "r + 16": (1.0, 16.0), "10 r": (10.0, 0.0)}
 

@@ -91,7 +91,9 @@ def critic(model: Any, env_id: str, n_episodes: int, settle: int, grid_points: i
     import torch as th
 
     from sb3_dacerf import DACERF
-    from sb3_dacerf.common.twin_critic import min_q
+
+    def min_q(critic: Any, observations: Any, actions: Any) -> Any:
+        return critic.q_values(observations, actions).min(dim=0).values
 
     env = gym.make(env_id)
     action_dim = int(np.prod(env.action_space.shape or ()))

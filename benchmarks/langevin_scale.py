@@ -34,7 +34,7 @@ def describe(folder: Path, batch_size: int, seed: int) -> str:
     from learning_curves import load_checkpoint
 
     from sb3_dacerf import DACERF
-    from sb3_dacerf.common.langevin import MinQActionGradient
+    from sb3_dacerf.dacerf.policies import MinQActionGradient
 
     with tempfile.TemporaryDirectory() as tmp:  # a copy: the run may be rewriting its checkpoint meanwhile
         copy = Path(tmp) / "checkpoint"
@@ -43,9 +43,9 @@ def describe(folder: Path, batch_size: int, seed: int) -> str:
     th.manual_seed(seed)
     batch = model.replay_buffer.sample(batch_size, env=model._vec_normalize_env)
     observations, actions = batch.observations, batch.actions
-    gradient = MinQActionGradient(model.critic, observations)(actions)
-    with th.no_grad():
-        q_buffer = model._min_q(observations, actions)
+    q_gradient = MinQActionGradient(model.critic, observations)
+    gradient = q_gradient(actions)
+    q_buffer = q_gradient.min_q(actions)
     columns = [
         f"{folder.parent.name} {folder.name} at {model.num_timesteps} steps",
         f"mean |Q| {q_buffer.abs().mean():.1f}",
@@ -54,9 +54,9 @@ def describe(folder: Path, batch_size: int, seed: int) -> str:
     ]
     for label, normalize in (("paper", False), ("normalised", True)):
         th.manual_seed(seed + 1)  # the same Langevin noise for both updates
-        targets = model.langevin_targets(observations, actions, normalize_gradient=normalize)
-        with th.no_grad():
-            gain = (model._min_q(observations, targets) - q_buffer).mean()
+        model.langevin_normalize_gradient = normalize
+        targets = model.langevin_targets(observations, actions)
+        gain = (q_gradient.min_q(targets) - q_buffer).mean()
         at_bound = (targets.abs() > 0.999).float().mean()
         columns.append(
             f"{label}: |a*-a_B| median {(targets - actions).abs().median():.3f}, at a bound {at_bound:.0%}, Q gain {gain:.2f}"

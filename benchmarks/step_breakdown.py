@@ -40,19 +40,19 @@ from sb3_dacerf import DACERF
 PARTS: dict[str, list[tuple[str, str, str, str | None]]] = {
     "DACERF": [
         ("replay sampling", "stable_baselines3/common/buffers.py", "sample", None),
-        ("critic update", "sb3_dacerf/common/twin_critic.py", "_update_critic", None),
+        ("critic update", "sb3_dacerf/common/twin_critic.py", "_step", None),
         ("target update", "sb3_dacerf/common/twin_critic.py", "_update_targets", None),
         ("actor update", "sb3_dacerf/dacerf/dacerf.py", "_update_actor", None),
         ("actor loss terms", "sb3_dacerf/dacerf/dacerf.py", "actor_loss_terms", "actor update"),
         # the gradient's set-up (critic features, state part of the first layer) and the 20-step loop
-        ("Langevin set-up", "sb3_dacerf/common/langevin.py", "__init__", "actor loss terms"),
-        ("Langevin loop", "sb3_dacerf/common/langevin.py", "langevin_targets", "actor loss terms"),
+        ("Langevin set-up", "sb3_dacerf/dacerf/policies.py", "__init__", "actor loss terms"),
+        ("Langevin loop", "sb3_dacerf/dacerf/dacerf.py", "langevin_targets", "actor loss terms"),
         ("entropy estimate", "sb3_dacerf/dacerf/dacerf.py", "_entropy_and_spread", "actor update"),
-        ("balance diagnostic", "sb3_dacerf/dacerf/dacerf.py", "actor_gradient_ratio", "actor update"),
+        ("balance diagnostic", "sb3_dacerf/dacerf/dacerf.py", "_actor_gradient_ratio", "actor update"),
     ],
     "DACER": [
         ("replay sampling", "stable_baselines3/common/buffers.py", "sample", None),
-        ("critic update", "sb3_dacerf/common/twin_critic.py", "_update_critic", None),
+        ("critic update", "sb3_dacerf/common/twin_critic.py", "_step", None),
         ("target update", "sb3_dacerf/common/twin_critic.py", "_update_targets", None),
         ("entropy estimate", "sb3_dacerf/dacer/dacer.py", "_estimate_entropy", None),
     ],
