@@ -51,9 +51,15 @@ def make_model(policy: str, n_sampling_steps: int = 1, algorithm: type = DACERF)
     if algorithm is DSAC:
         settings = dict(TINY)
     if policy == "MlpPolicy":
-        return algorithm("MlpPolicy", "Pendulum-v1", **settings)
-    env = SimpleMultiObsEnv(discrete_actions=False) if policy == "MultiInputPolicy" else DiscreteObsEnv()
-    return algorithm("MultiInputPolicy", env, **settings)
+        model = algorithm("MlpPolicy", "Pendulum-v1", **settings)
+    else:
+        env = SimpleMultiObsEnv(discrete_actions=False) if policy == "MultiInputPolicy" else DiscreteObsEnv()
+        model = algorithm("MultiInputPolicy", env, **settings)
+    if algorithm is DACER:  # a small predicted noise: the untrained reverse process then stays inside the bounds
+        with th.no_grad():
+            model.actor.network[-1].weight.mul_(0.05)
+            model.actor.network[-1].bias.mul_(0.05)
+    return model
 
 
 def sample_observations(model, n: int):
