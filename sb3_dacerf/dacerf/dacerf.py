@@ -66,9 +66,7 @@ class DACERF(TwinCriticAlgorithm):
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
         at a cost of more complexity.
     :param n_steps: Rewards summed in the critic target before it bootstraps: 1 (the default) is the paper's
-        one-step target; more uses n-step returns (SB3's ``NStepReplayBuffer``). ``n_steps=3`` closed the gap to SAC
-        on the sparse-reward DMC reacher-easy, and ended lower on walker-walk, cheetah-run and finger-spin (one seed,
-        benchmarks/learning.md, section 8)
+        one-step target; more uses n-step returns (SB3's ``NStepReplayBuffer``)
     :param policy_delay: The actor is updated once every ``policy_delay`` critic updates
     :param langevin_steps: Number of Langevin steps ``N_l`` that turn replay actions into targets ``a*``
     :param langevin_step_size: Langevin step size ``η_a``

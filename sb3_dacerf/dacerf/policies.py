@@ -93,8 +93,7 @@ class FlowActor(GenerativeActor):
         """
         Bring the flow's end point into [-1, 1]: a hard clamp, whose gradient is zero in every saturated
         coordinate (the actor's ``-Q`` term does not move a coordinate the flow has pushed past a bound; the
-        flow-matching term, which trains the velocity directly, still does). Measured against a straight-through
-        clamp in ``benchmarks/learning.md`` ("The clamp").
+        flow-matching term, which trains the velocity directly, still does).
 
         :param actions: End points of the flow ``(batch, action_dim)``
         :return: Actions in [-1, 1]
