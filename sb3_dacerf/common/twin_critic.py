@@ -11,11 +11,10 @@ from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBufferSamples
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BaseModel, BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 
 from sb3_dacerf.common.persistence import TwinCriticPersistence
@@ -24,7 +23,6 @@ from sb3_dacerf.common.utils import non_finite_entries
 from sb3_dacerf.common.validation import (
     HyperparameterRule,
     NonFiniteLossError,
-    check_action_space,
     initial_ent_coef,
     integer_at_least,
     resolve_target_entropy,
@@ -65,11 +63,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
     (``{**TwinCriticAlgorithm.hyperparameter_rules, ...}``) and overrides :meth:`_check_hyperparameters` for checks a
     range cannot express. Saving and loading come from :class:`~sb3_dacerf.common.persistence.TwinCriticPersistence`.
 
-    :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
-    :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: learning rate for the optimizer of the actor and of the critics,
-        it can be a function of the current progress remaining (from 1 to 0)
-    :param kwargs: The arguments of SB3's ``OffPolicyAlgorithm``
+    It adds no constructor argument: the algorithms pass SB3's to ``OffPolicyAlgorithm``.
     """
 
     #: Valid values of the numeric hyper-parameters, checked before the model is built: name -> rule. The value
@@ -93,17 +87,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
     policy_delay: int
     ent_coef: str | float
     target_entropy: str | float
-
-    def __init__(self, policy: str | type[BasePolicy], env: GymEnv | str | None, learning_rate: float | Schedule, **kwargs: Any):
-        if env is not None:
-            # Made here (not in the base class) so the action space is checked before SB3's own assertions
-            env = maybe_make_env(env, kwargs.get("verbose", 0))
-            check_action_space(env.action_space, algorithm=type(self).__name__)
-        # The action space is checked above, with an error that says what to do instead
-        kwargs.update(supported_action_spaces=None, support_multi_env=True, sde_support=False)
-        # SB3 annotates OffPolicyAlgorithm's env without None, which its own load() passes
-        super().__init__(policy, env, learning_rate, **kwargs)  # type: ignore[arg-type]
-        self.ent_coef_optimizer: th.optim.Adam | None = None
+    ent_coef_optimizer: th.optim.Adam | None = None
 
     def _check_hyperparameters(self) -> None:
         """
@@ -148,8 +132,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         with th.no_grad():
             log_alpha.fill_(math.log(alpha) if alpha > 0 else -math.inf)
         log_alpha.requires_grad_(isinstance(self.ent_coef, str))
-        if isinstance(self.ent_coef, str):
-            self.ent_coef_optimizer = th.optim.Adam([log_alpha], lr=learning_rate)
+        self.ent_coef_optimizer = th.optim.Adam([log_alpha], lr=learning_rate) if isinstance(self.ent_coef, str) else None
 
     def _critic_parameters(self) -> list[th.nn.Parameter]:
         """The critic's own parameters (not those of a features extractor shared with the actor), to freeze."""

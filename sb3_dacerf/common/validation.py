@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from stable_baselines3.common.base_class import maybe_make_env
+from stable_baselines3.common.type_aliases import GymEnv
 
 
 class NonFiniteLossError(RuntimeError, ValueError):
@@ -55,6 +57,18 @@ def integer_at_least(minimum: int, valid_range: str | None = None) -> Hyperparam
         lambda value: isinstance(value, (int, np.integer)) and bool(value >= minimum),
         f"an integer >= {minimum}" if valid_range is None else valid_range,
     )
+
+
+def made_env(env: GymEnv | str | None, algorithm: str, verbose: int) -> GymEnv | None:
+    """
+    The environment SB3 makes of ``env`` (``None`` stays ``None``), its action space checked by
+    :func:`check_action_space` before SB3's own assertions, which do not say what to do instead.
+    """
+    if env is None:
+        return None
+    env = maybe_make_env(env, verbose)
+    check_action_space(env.action_space, algorithm)
+    return env
 
 
 def check_action_space(action_space: spaces.Space, algorithm: str) -> None:

@@ -10,7 +10,7 @@ from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 
 from sb3_dacerf.common.policies import EnsembleCritic, twin_critic_loss
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
-from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least
+from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least, made_env
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
 from sb3_dacerf.dacer.policies import CnnPolicy, DACERPolicy, DiffusionActor, MlpPolicy, MultiInputPolicy
 
@@ -139,7 +139,7 @@ class DACER(TwinCriticAlgorithm):
     ):
         super().__init__(
             policy,
-            env,
+            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
             learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
@@ -159,6 +159,9 @@ class DACER(TwinCriticAlgorithm):
             verbose=verbose,
             seed=seed,
             device=device,
+            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
+            support_multi_env=True,
+            sde_support=False,
         )
 
         # The number of steps written into a copy of policy_kwargs (the caller's dict stays reusable), so that a saved

@@ -13,7 +13,7 @@ from torch.nn import functional as F
 
 from sb3_dacerf.common.policies import EnsembleCritic, twin_critic_loss
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
-from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least
+from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least, made_env
 from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, FlowActor, MinQActionGradient, MlpPolicy, MultiInputPolicy
 
 #: The weightings of the two terms of the actor loss (``flow_matching_weights``), see :func:`actor_loss_weights`
@@ -158,7 +158,7 @@ class DACERF(TwinCriticAlgorithm):
     ):
         super().__init__(
             policy,
-            env,
+            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
             learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
@@ -178,6 +178,9 @@ class DACERF(TwinCriticAlgorithm):
             verbose=verbose,
             seed=seed,
             device=device,
+            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
+            support_multi_env=True,
+            sde_support=False,
         )
 
         # DACER-F's own hyper-parameters (Algorithm 2)

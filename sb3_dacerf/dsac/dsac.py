@@ -13,7 +13,7 @@ from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
-from sb3_dacerf.common.validation import HyperparameterRule
+from sb3_dacerf.common.validation import HyperparameterRule, made_env
 from sb3_dacerf.dsac.policies import CnnPolicy, DSACPolicy, GaussianActor, GaussianCritic, MlpPolicy, MultiInputPolicy
 
 #: ``ε`` of the weighting of the mean and standard-deviation gradients (``bias`` in the authors' code)
@@ -226,7 +226,7 @@ class DSAC(TwinCriticAlgorithm):
     ):
         super().__init__(
             policy,
-            env,
+            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
             learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
@@ -246,6 +246,9 @@ class DSAC(TwinCriticAlgorithm):
             verbose=verbose,
             seed=seed,
             device=device,
+            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
+            support_multi_env=True,
+            sde_support=False,
         )
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
