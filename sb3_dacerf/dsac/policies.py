@@ -3,7 +3,7 @@ from typing import Any
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.policies import BaseModel, BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN, create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
@@ -140,17 +140,19 @@ class GaussianActor(BasePolicy):
         return self.sample_with_log_prob(self.extract_features(obs, self.features_extractor))
 
 
-class GaussianCritic(ContinuousCritic):
+class GaussianCritic(BaseModel):
     """
-    Twin distributional critics of DSAC: each network outputs the mean ``Q(s, a)`` and the standard deviation
-    ``σ(s, a) = softplus(·)`` of a Gaussian return distribution (the authors' ``ActionValueDistri``).
+    Twin distributional critics of DSAC: each network ``qf<j>`` outputs the mean ``Q(s, a)`` and the standard
+    deviation ``σ(s, a) = softplus(·)`` of a Gaussian return distribution (the authors' ``ActionValueDistri``).
 
     Called like SB3's ``ContinuousCritic`` it returns the means only, one ``(batch, 1)`` tensor per network, so that
-    code written for a Q-function (``min_q``, ``q1_forward``) reads the expected values; :meth:`distributions`
-    returns the means and the standard deviations. Same arguments as ``ContinuousCritic``, and:
+    code written for a Q-function (``q1_forward``) reads the expected values; :meth:`distributions` returns the means
+    and the standard deviations. Same arguments as SB3's ``ContinuousCritic``, and:
 
     :param layer_norm: ``LayerNorm`` after every hidden linear layer (before the activation)
     """
+
+    features_extractor: BaseFeaturesExtractor
 
     def __init__(
         self,
@@ -166,24 +168,19 @@ class GaussianCritic(ContinuousCritic):
         layer_norm: bool = False,
     ):
         super().__init__(
-            observation_space,
-            action_space,
-            net_arch,
-            features_extractor,
-            features_dim,
-            activation_fn=activation_fn,
-            normalize_images=normalize_images,
-            n_critics=n_critics,
-            share_features_extractor=share_features_extractor,
+            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
         )
+        self.share_features_extractor = share_features_extractor
+        self.n_critics = n_critics
         input_dim = features_dim + get_action_dim(action_space)
-        # Rebuilt with two outputs (mean, pre-softplus σ); a ModuleList, as sb3_dacerf's other critics
-        self.q_networks = nn.ModuleList()  # type: ignore[assignment]
-        for idx in range(n_critics):
-            layers = create_mlp(input_dim, 2, net_arch, activation_fn, post_linear_modules=[nn.LayerNorm] if layer_norm else None)
-            q_net = nn.Sequential(*layers)
+        post_linear_modules: list[type[nn.Module]] | None = [nn.LayerNorm] if layer_norm else None
+        networks = [
+            nn.Sequential(*create_mlp(input_dim, 2, net_arch, activation_fn, post_linear_modules=post_linear_modules))
+            for _ in range(n_critics)
+        ]
+        for idx, q_net in enumerate(networks):
             self.add_module(f"qf{idx}", q_net)
-            self.q_networks.append(q_net)
+        self.q_networks = nn.ModuleList(networks)
 
     def distributions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[tuple[th.Tensor, th.Tensor], ...]:
         """
