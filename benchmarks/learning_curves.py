@@ -59,15 +59,13 @@ import numpy as np
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # name: (algorithm, constructor kwargs); "action_noise_std" becomes a NormalActionNoise
     "dacerf": ("DACERF", {}),
-    # the paper's own settings (sb3_dacerf.dacerf.PAPER_HYPERPARAMETERS) and the defaults of version 0.1.0
+    # the paper's own settings (sb3_dacerf.dacerf.PAPER_HYPERPARAMETERS)
     "dacerf-paper": ("DACERF", dict(paper=True)),
-    "dacerf-v010": ("DACERF", dict(tau=0.001, ent_coef=0.0, flow_matching_weights="q_scale")),
     # ablations of the defaults, one change each
     "dacerf-noreg": ("DACERF", dict(ent_coef=0.0)),
     "dacerf-alpha1": ("DACERF", dict(ent_coef="auto_1")),
-    "dacerf-qscale": ("DACERF", dict(flow_matching_weights="q_scale")),
     "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic="layer_norm"))),  # = the defaults (named so in earlier results)
-    "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic="mlp"))),  # SB3's MLP critics (0.1.0's)
+    "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic="mlp"))),  # SB3's MLP critics
     # CrossQ's learning rate 1e-3 and Adam betas (0.5, 0.999), with the default critics and their targets
     "dacerf-lr": ("DACERF", dict(learning_rate=1e-3, policy_kwargs=dict(optimizer_kwargs=dict(betas=(0.5, 0.999))))),
     # CrossQ's critics: batch renormalisation, no target networks (same width, learning rate and Adam as the defaults)
@@ -93,8 +91,6 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-utd2": ("DACERF", dict(gradient_steps=2)),  # two gradient steps per environment step (twice the updates)
     "dacerf-tau001": ("DACERF", dict(tau=0.001)),
     "dacerf-noise": ("DACERF", dict(ent_coef=0.0, action_noise_std=0.1)),
-    # version 0.1.0's short-budget settings: SAC's tau and Gaussian action noise 0.1, no regulator, "q_scale" weights
-    "dacerf-tuned": ("DACERF", dict(ent_coef=0.0, flow_matching_weights="q_scale", action_noise_std=0.1)),
     "dacer": ("DACER", {}),
     "dsac": ("DSAC", {}),  # DSAC-T with the authors' defaults (sb3_dacerf.DSAC)
     "sac": ("SAC", {}),
@@ -443,7 +439,9 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
             collisions.append(float(info.get("collision", np.nan)))
             off_road.append(float(info.get("off_road", np.nan)))
         spread = model.logger.name_to_value.get("train/action_spread", np.nan)
-        log_alpha = getattr(getattr(model, "actor", None), "log_alpha", None)
+        # the temperature: SAC's and DSAC's log_ent_coef, DACER-F's and DACER's actor.log_alpha
+        log_alpha = getattr(model, "log_ent_coef", None)
+        log_alpha = getattr(getattr(model, "actor", None), "log_alpha", None) if log_alpha is None else log_alpha
         rows.append(
             dict(
                 env=job["env"],

@@ -81,8 +81,6 @@ NET_ARCH = {
 #: hidden layer (the default), or CrossQ's batch renormalisation without target networks (needs sb3-contrib, which RL
 #: Zoo installs). The draw overrides a YAML entry's own choice of critics.
 CRITICS = _POLICY_CRITICS
-#: The ``policy_kwargs`` of earlier versions that chose the critics, which a drawn ``critic`` replaces
-_CRITIC_FLAGS = ("critic_layer_norm", "critic_batch_renorm")
 
 
 def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -94,14 +92,10 @@ def convert_dacerf_params(sampled_params: dict[str, Any], policy_kwargs: dict[st
     :return: keyword arguments for ``DACERF``
     """
     hyperparams = convert_dacer_params(sampled_params, policy_kwargs)  # the settings both samplers draw
-    if "critic_layer_norm" in hyperparams:  # studies made before batch-renorm critics were sampled
-        hyperparams.setdefault("critics", "layer_norm" if hyperparams.pop("critic_layer_norm") else "mlp")
     if "critics" in hyperparams:
         critics = hyperparams.pop("critics")
         if critics not in CRITICS:
             raise ValueError(f"Unknown critics {critics!r} in the sampled parameters: use one of {sorted(CRITICS)}")
-        for flag in _CRITIC_FLAGS:
-            hyperparams["policy_kwargs"].pop(flag, None)
         hyperparams["policy_kwargs"]["critic"] = critics
     if hyperparams.get("ent_coef") == "off":  # Optuna's categorical values: "auto" (learned α) or "off" (paper)
         hyperparams["ent_coef"] = 0.0
@@ -248,7 +242,6 @@ def sample_dsac_params(
         "initial_ent_coef": trial.suggest_categorical("initial_ent_coef", [0.1, 1.0, 2.718]),  # authors: e
         "alpha_learning_rate": trial.suggest_float("alpha_learning_rate", 3e-5, 3e-3, log=True),
         "tau_b": trial.suggest_float("tau_b", 1e-4, 0.05, log=True),
-        "critic_loss": trial.suggest_categorical("critic_loss", ["dsac-v2", "gops"]),
     }
     trial.set_user_attr("batch_size", 2 ** sampled["batch_size_pow"])
     return convert_dsac_params(sampled, policy_kwargs)

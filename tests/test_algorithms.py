@@ -18,7 +18,7 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 from sb3_dacerf import DACER, DACERF, DSAC
-from sb3_dacerf.common.policies import LEGACY_NETWORK_NAMES, GenerativeActor
+from sb3_dacerf.common.policies import GenerativeActor
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
 
 # SAC's own options, which a generative policy has no use for
@@ -49,9 +49,6 @@ def observations(model, n: int = 16) -> np.ndarray:
 
 def test_constructor_arguments_are_explicit(model_class):
     parameters = dict(inspect.signature(model_class).parameters)
-    # The only catch-all takes the arguments of earlier versions, to name their replacement: a misspelt one is refused
-    if "removed_arguments" in parameters:
-        assert parameters.pop("removed_arguments").kind == inspect.Parameter.VAR_KEYWORD
     kinds = {parameter.kind for parameter in parameters.values()}
     assert inspect.Parameter.VAR_KEYWORD not in kinds and inspect.Parameter.VAR_POSITIONAL not in kinds
     with pytest.raises(
@@ -74,24 +71,22 @@ def test_hyperparameter_rules_belong_to_their_algorithm(model_class):
     # ... named as the algorithm's arguments, or as its policy's (n_sampling_steps, n_diffusion_steps)
     policy_parameters = inspect.signature(model_class.policy_aliases["MlpPolicy"]).parameters
     assert set(rules) <= set(inspect.signature(model_class).parameters) | set(policy_parameters)
-    # Each algorithm checks its own hyper-parameters only: policy_delay is the one they both have
+    # Each algorithm checks its own hyper-parameters only; those of all of them are the base class's
     shared = set(TwinCriticAlgorithm.hyperparameter_rules)
-    assert (set(DACER.hyperparameter_rules) - shared) & (set(DACERF.hyperparameter_rules) - shared) == {"policy_delay"}
+    assert "policy_delay" in shared
+    assert (set(DACER.hyperparameter_rules) - shared) & (set(DACERF.hyperparameter_rules) - shared) == set()
 
 
-def test_checks_and_persistence_still_import_from_twin_critic():
-    """The checks and the saving and loading have their own modules; the names they had in twin_critic still work."""
-    from sb3_dacerf.common import persistence, twin_critic, validation
+def test_one_base_class_between_off_policy_algorithm_and_the_algorithms(model_class):
+    """The algorithms derive from TwinCriticAlgorithm, which holds the checks; saving and loading come with it."""
+    from sb3_dacerf.common import persistence
 
-    for name in twin_critic.__all__:
-        home = persistence if hasattr(persistence, name) else validation if hasattr(validation, name) else twin_critic
-        assert getattr(twin_critic, name) is getattr(home, name), name
-    assert {"NonFiniteLossError", "HyperparameterRule", "saved_algorithm_name", "check_action_space"} <= set(twin_critic.__all__)
-    # What each part overrides of SB3's OffPolicyAlgorithm is what the algorithm runs
-    parts = {"save": persistence.TwinCriticPersistence, "load": persistence.TwinCriticPersistence}
-    parts.update(set_parameters=persistence.TwinCriticPersistence, predict=validation.TwinCriticChecks)
-    for method, part in parts.items():
-        assert next(cls for cls in TwinCriticAlgorithm.__mro__ if method in vars(cls)) is part, method
+    mro = model_class.__mro__
+    assert mro[1:4] == (TwinCriticAlgorithm, persistence.TwinCriticPersistence, OffPolicyAlgorithm)
+    for method in ("predict", "_checked", "_sample_action", "learn"):
+        assert next(cls for cls in mro if method in vars(cls)) is TwinCriticAlgorithm, method
+    for method in ("save", "load", "set_parameters"):
+        assert next(cls for cls in mro if method in vars(cls)) is persistence.TwinCriticPersistence, method
 
 
 @pytest.mark.parametrize(
@@ -124,12 +119,13 @@ def test_invalid_shared_hyperparameters_name_their_valid_range(model_class, name
 @pytest.mark.parametrize("ent_coef, alpha, learned", [("auto_0.5", 0.5, True), (0.2, 0.2, False), (0, 0.0, False)])
 def test_ent_coef_sets_the_initial_temperature(model_class, ent_coef, alpha, learned):
     model = model_class("MlpPolicy", "Pendulum-v1", ent_coef=ent_coef)
-    assert model.actor.log_alpha.exp().item() == pytest.approx(alpha)
+    assert log_alpha(model).exp().item() == pytest.approx(alpha)
+    assert log_alpha(model).requires_grad == learned
     assert (model.ent_coef_optimizer is not None) == learned
     # "auto": learned, from each algorithm's own start (DACER-F and DACER: α = 3; DSAC: α = e)
     auto = model_class("MlpPolicy", "Pendulum-v1", ent_coef="auto")
     assert auto.ent_coef_optimizer is not None
-    assert auto.actor.log_alpha.exp().item() == pytest.approx(math.e if model_class is DSAC else 3.0)
+    assert log_alpha(auto).exp().item() == pytest.approx(math.e if model_class is DSAC else 3.0)
 
 
 def test_learns_and_logs(model_class, fast, tmp_path):
@@ -153,7 +149,7 @@ def test_save_load_gives_identical_predictions(model_class, fast, tmp_path):
     model.save(tmp_path / "model")
     loaded = model_class.load(tmp_path / "model")
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], actions)
-    assert loaded.actor.log_alpha.item() == model.actor.log_alpha.item()
+    assert log_alpha(loaded).item() == log_alpha(model).item()
 
     # The policy alone (sb3-contrib's test_save_load_policy), and the actor alone
     model.policy.save(tmp_path / "policy.pkl")
@@ -162,18 +158,6 @@ def test_save_load_gives_identical_predictions(model_class, fast, tmp_path):
     model.actor.save(tmp_path / "actor.pkl")
     actor = type(model.actor).load(tmp_path / "actor.pkl")
     np.testing.assert_array_equal(actor.predict(obs, deterministic=True)[0], model.actor.predict(obs, deterministic=True)[0])
-
-
-def test_legacy_network_names_are_renamed_on_load(model_class, fast):
-    model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
-    state = {key: value.clone() for key, value in model.policy.state_dict().items()}
-    for legacy_name in LEGACY_NETWORK_NAMES:
-        legacy = {key.replace("actor.network.", f"actor.{legacy_name}."): value.clone() + 1.0 for key, value in state.items()}
-        model.policy.load_state_dict(legacy)
-        for key, value in model.policy.state_dict().items():
-            assert th.equal(value, state[key] + 1.0), key
-    with pytest.raises(RuntimeError, match="Unexpected key"):  # strict loading still refuses unknown keys
-        model.policy.load_state_dict({**state, "actor.other_net.0.weight": th.zeros(1)})
 
 
 def test_predict_shapes_and_bounds(model_class, fast):
@@ -215,6 +199,12 @@ def test_discrete_actions_are_refused_with_advice(model_class):
         model_class("MlpPolicy", "CartPole-v1")
 
 
+def log_alpha(model) -> th.Tensor:
+    """``log α``: a parameter of DACER-F's and DACER's actors (it scales their exploration noise), DSAC's own."""
+    return model.log_ent_coef if isinstance(model, DSAC) else model.actor.log_alpha
+
+
+@pytest.mark.parametrize("model_class", [DACER, DACERF])
 def test_actor_interface(model_class, fast):
     """The contract of GenerativeActor: sample(features, noise), draw_noise, add_exploration_noise, act, forward."""
     model = model_class("MlpPolicy", "Pendulum-v1", seed=0, **fast)
@@ -247,7 +237,8 @@ def test_actor_interface(model_class, fast):
 
     # No exploration noise (and no random draw) at α = 0
     quiet = copy.deepcopy(actor)
-    quiet.log_alpha.fill_(-math.inf)
+    with th.no_grad():
+        quiet.log_alpha.fill_(-math.inf)
     state = th.get_rng_state()
     assert quiet.add_exploration_noise(clean) is clean
     assert th.equal(th.get_rng_state(), state)

@@ -4,7 +4,7 @@ import pytest
 import torch as th
 
 from sb3_dacerf import DACER, DACERF
-from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleBatchRenorm
+from sb3_dacerf.common.policies import BatchRenormCritic, EnsembleBatchRenorm
 
 pytest.importorskip("sb3_contrib")
 
@@ -56,16 +56,3 @@ def test_saved_and_loaded_with_their_running_statistics(tmp_path, fast):
             model.critic(observations, actions), loaded.critic(observations, actions), strict=True
         ):
             assert th.allclose(q_value, loaded_q_value)
-
-
-def test_the_critic_booleans_of_earlier_versions_convert_with_a_warning_and_contradictions_are_refused():
-    with pytest.warns(FutureWarning, match=r"critic_batch_renorm=True is deprecated.*dict\(critic='batch_renorm'\)"):
-        model = DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_batch_renorm=True))
-    assert isinstance(model.critic, BatchRenormCritic) and model.policy_kwargs["critic"] == "batch_renorm"
-    assert "critic_batch_renorm" not in model.policy_kwargs
-    with pytest.warns(FutureWarning, match=r"dict\(critic='mlp'\)"):
-        assert DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=False)).policy_kwargs["critic"] == "mlp"
-    with pytest.raises(ValueError, match=r"two kinds of critics at once.*critic='batch_renorm'"):
-        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_layer_norm=True, critic_batch_renorm=True))
-    with pytest.raises(ValueError, match="critic='layer_norm' and the deprecated critic_batch_renorm=True"):
-        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic="layer_norm", critic_batch_renorm=True))

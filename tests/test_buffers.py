@@ -113,14 +113,3 @@ def test_dacerf_fits_the_demonstrated_actions_with_demonstration_targets_actions
             replay_buffer_class=DemonstrationReplayBuffer,
             replay_buffer_kwargs=dict(demonstration_targets="copy"),
         )
-
-
-def test_demonstration_targets_given_to_dacerf_move_to_the_buffer_with_a_warning():
-    from sb3_dacerf import DACERF
-
-    with pytest.warns(FutureWarning, match=r"replay_buffer_kwargs=dict\(demonstration_targets='actions'\)"):
-        model = DACERF("MlpPolicy", "Pendulum-v1", replay_buffer_class=DemonstrationReplayBuffer, demonstration_targets="actions")
-    assert model.replay_buffer.demonstration_targets == "actions"
-    assert model.replay_buffer_kwargs == dict(demonstration_targets="actions")
-    with pytest.raises(ValueError, match="pass replay_buffer_class=DemonstrationReplayBuffer"):
-        DACERF("MlpPolicy", "Pendulum-v1", demonstration_targets="actions")

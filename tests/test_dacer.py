@@ -10,7 +10,7 @@ from stable_baselines3.common.logger import configure
 
 from sb3_dacerf import DACER
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
-from sb3_dacerf.dacer.policies import diffusion_betas
+from sb3_dacerf.dacer.policies import vp_betas
 
 
 @pytest.fixture
@@ -58,14 +58,14 @@ def test_official_defaults():
     assert model.ent_coef == "auto" and model.ent_coef_optimizer.param_groups[0]["lr"] == 3e-2
     assert model.target_entropy == pytest.approx(-0.9)
     assert model.actor.log_alpha.item() == pytest.approx(OFFICIAL_LOG_ALPHA)
-    assert (model.actor.n_diffusion_steps, model.actor.beta_schedule, model.actor.exploration_noise_scale) == (20, "vp", 0.15)
+    assert (model.actor.n_diffusion_steps, model.actor.exploration_noise_scale) == (20, 0.15)
     assert [m.out_features for m in model.actor.network if isinstance(m, th.nn.Linear)] == [256, 256, 256, 1]
     assert any(isinstance(m, th.nn.Mish) for m in model.actor.network)
     assert model.policy.critic.n_critics == 2
 
 
 def test_vp_schedule_is_the_official_one():
-    betas = diffusion_betas("vp", 20)
+    betas = vp_betas(20)
     np.testing.assert_allclose(betas, official_vp_betas(20), rtol=1e-12)
     # The first reverse step (t = T): x̂_0 = 12.5 x_T - ..., x_T kept with weight 0.78 in the posterior mean
     alphas_cumprod = np.cumprod(1 - betas)
@@ -98,13 +98,14 @@ def test_one_network_call_per_diffusion_step(fast):
 def test_actor_and_targets_update_every_policy_delay_updates(fast):
     model = DACER("MlpPolicy", "Pendulum-v1", seed=0, policy_delay=2, **fast)
     model.learn(60)  # 10 updates: the last one (10) updated the actor
-    actor_before = [p.clone() for p in model.actor.parameters()]
+    actor_parameters = [param for name, param in model.actor.named_parameters() if name != "log_alpha"]  # α: its own step
+    actor_before = [p.clone() for p in actor_parameters]
     target_before = [p.clone() for p in model.critic_target.parameters()]
     model.train(gradient_steps=1, batch_size=32)  # update 11: critic only
-    assert all(th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters(), strict=True))
+    assert all(th.equal(a, b) for a, b in zip(actor_before, actor_parameters, strict=True))
     assert all(th.equal(a, b) for a, b in zip(target_before, model.critic_target.parameters(), strict=True))
     model.train(gradient_steps=1, batch_size=32)  # update 12: actor, through all the denoising steps, and targets
-    assert all(not th.equal(a, b) for a, b in zip(actor_before, model.actor.parameters(), strict=True))
+    assert all(not th.equal(a, b) for a, b in zip(actor_before, actor_parameters, strict=True))
     assert not all(th.equal(a, b) for a, b in zip(target_before, model.critic_target.parameters(), strict=True))
 
 
@@ -118,18 +119,13 @@ def test_alpha_moves_towards_the_target_entropy_once_per_interval(target_entropy
     assert model.ent_coef_optimizer.state_dict()["state"][0]["step"] == 3
 
 
-def test_ent_coef_fixes_or_starts_alpha_and_initial_log_alpha_converts_with_a_warning(tmp_path, fast):
+def test_ent_coef_fixes_or_starts_alpha(tmp_path, fast):
     fixed = DACER("MlpPolicy", "Pendulum-v1", seed=0, ent_coef=0.5, alpha_update_interval=1, entropy_samples=8, **fast)
     fixed.learn(70)
     assert fixed.ent_coef_optimizer is None and fixed.actor.log_alpha.exp().item() == pytest.approx(0.5)
     assert fixed.logger.name_to_value["train/ent_coef"] == pytest.approx(0.5)
     assert DACER("MlpPolicy", "Pendulum-v1", ent_coef=0).actor.exploration_std.item() == 0.0
     assert DACER("MlpPolicy", "Pendulum-v1", ent_coef="auto_0.5").actor.log_alpha.exp().item() == pytest.approx(0.5)
-    with pytest.warns(FutureWarning, match=r"initial_log_alpha=0.0\) is deprecated.*use ent_coef='auto_1'"):
-        model = DACER("MlpPolicy", "Pendulum-v1", initial_log_alpha=0.0)
-    assert model.ent_coef == "auto_1.0" and model.actor.log_alpha.item() == 0.0 and model.ent_coef_optimizer is not None
-    with pytest.raises(ValueError, match=r"initial_log_alpha=0\.0 and ent_coef=0\.5 both set the temperature"):
-        DACER("MlpPolicy", "Pendulum-v1", initial_log_alpha=0.0, ent_coef=0.5)
     for bad in ("automatic", "auto_-1", -0.1, True):
         with pytest.raises(ValueError, match=f"Invalid ent_coef={bad!r}"):
             DACER("MlpPolicy", "Pendulum-v1", ent_coef=bad)
@@ -160,34 +156,6 @@ def test_save_load_restores_the_entropy_regulator(tmp_path, fast):
     assert loaded.ent_coef_optimizer.state_dict()["state"][0]["step"] == model.ent_coef_optimizer.state_dict()["state"][0]["step"]
     assert loaded.ent_coef_optimizer.param_groups[0]["params"][0] is loaded.actor.log_alpha
     assert loaded.entropy == model.entropy
-
-
-def test_beta_schedules_match_their_definitions():
-    T = 20
-    np.testing.assert_allclose(diffusion_betas("linear", T)[[0, -1]], [1e-4, 2e-2])
-    # Cosine (Nichol & Dhariwal): ᾱ_t = f(t) / f(0), f(t) = cos²((t/T + s) / (1 + s) π/2), s = 0.008, β clipped at 0.999
-    f = np.cos((np.arange(T + 1) / T + 0.008) / 1.008 * np.pi / 2) ** 2
-    cosine = diffusion_betas("cosine", T)
-    np.testing.assert_allclose(np.cumprod(1 - cosine)[:-1], f[1:-1] / f[0], rtol=1e-9)
-    assert cosine[-1] == 0.999
-
-
-@pytest.mark.parametrize("schedule", ["vp", "cosine", "linear"])
-def test_every_beta_schedule_is_selectable_and_trains(schedule, fast):
-    model = DACER(
-        "MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "policy_kwargs": {**fast["policy_kwargs"], "beta_schedule": schedule}}
-    )
-    assert model.actor.beta_schedule == schedule
-    # The reverse process uses the chosen schedule: at t = T, x̂_0 = x_T / sqrt(ᾱ_T) - ...
-    alpha_bar = np.prod(1 - diffusion_betas(schedule, 5))
-    assert model.actor.reverse_coefficients[-1][0] == pytest.approx(1 / math.sqrt(alpha_bar))
-    model.learn(60)
-    assert np.all(np.abs(model.predict(model.observation_space.sample())[0]) <= 2.0)
-
-
-def test_unknown_beta_schedule_is_refused():
-    with pytest.raises(ValueError, match="Unknown beta_schedule 'quadratic': use 'vp', 'cosine' or 'linear'"):
-        DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(beta_schedule="quadratic"))
 
 
 @pytest.mark.parametrize(

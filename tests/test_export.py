@@ -24,7 +24,7 @@ ort = pytest.importorskip("onnxruntime")
 TINY = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32]), seed=0)
 # DACER with the linear noise schedule: an untrained model's deterministic actions are then inside the bounds (with
 # the cosine schedule most are clipped, which would hide differences); the cosine schedule is tested on its own
-TINY_DACER = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32], beta_schedule="linear", n_diffusion_steps=5), seed=0)
+TINY_DACER = dict(buffer_size=1, policy_kwargs=dict(net_arch=[32, 32], n_diffusion_steps=5), seed=0)
 
 
 class DiscreteObsEnv(gym.Env):
@@ -53,9 +53,15 @@ def make_model(policy: str, n_sampling_steps: int = 1, algorithm: type = DACERF)
     if algorithm is DSAC:
         settings = dict(TINY)
     if policy == "MlpPolicy":
-        return algorithm("MlpPolicy", "Pendulum-v1", **settings)
-    env = SimpleMultiObsEnv(discrete_actions=False) if policy == "MultiInputPolicy" else DiscreteObsEnv()
-    return algorithm("MultiInputPolicy", env, **settings)
+        model = algorithm("MlpPolicy", "Pendulum-v1", **settings)
+    else:
+        env = SimpleMultiObsEnv(discrete_actions=False) if policy == "MultiInputPolicy" else DiscreteObsEnv()
+        model = algorithm("MultiInputPolicy", env, **settings)
+    if algorithm is DACER:  # a small predicted noise: the untrained reverse process then stays inside the bounds
+        with th.no_grad():
+            model.actor.network[-1].weight.mul_(0.05)
+            model.actor.network[-1].bias.mul_(0.05)
+    return model
 
 
 def sample_observations(model, n: int):

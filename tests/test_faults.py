@@ -112,27 +112,13 @@ def test_learn_stops_at_a_non_finite_observation_before_acting_on_it(nan_step, m
     assert all(np.isfinite(action).all() for action in env.actions)
 
 
-def test_n_sampling_steps_is_a_policy_argument_and_the_algorithm_argument_converts_with_a_warning():
+def test_sampling_steps_are_policy_arguments():
     assert DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(n_sampling_steps=8)).actor.n_sampling_steps == 8
     assert DACERF("MlpPolicy", "Pendulum-v1").policy_kwargs["n_sampling_steps"] == 1
-    with pytest.warns(
-        FutureWarning, match=r"DACERF\(n_sampling_steps=...\) is deprecated.*policy_kwargs=dict\(n_sampling_steps=4\)"
-    ):
-        assert DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=4).actor.n_sampling_steps == 4
-    with pytest.warns(FutureWarning):
-        both = DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=8, policy_kwargs=dict(n_sampling_steps=8))
-    assert both.actor.n_sampling_steps == 8
-    with pytest.raises(ValueError, match=r"n_sampling_steps=1 and policy_kwargs=dict\(n_sampling_steps=8\) disagree"):
-        DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=1, policy_kwargs=dict(n_sampling_steps=8))
-
-
-def test_n_diffusion_steps_is_a_policy_argument_and_the_algorithm_argument_converts_with_a_warning():
     assert DACER("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(n_diffusion_steps=5)).actor.n_diffusion_steps == 5
     assert DACER("MlpPolicy", "Pendulum-v1").actor.n_diffusion_steps == 20
-    with pytest.warns(FutureWarning, match=r"policy_kwargs=dict\(n_diffusion_steps=3\)"):
-        assert DACER("MlpPolicy", "Pendulum-v1", n_diffusion_steps=3).actor.n_diffusion_steps == 3
-    with pytest.raises(ValueError, match=r"n_diffusion_steps=20 and policy_kwargs=dict\(n_diffusion_steps=5\) disagree"):
-        DACER("MlpPolicy", "Pendulum-v1", n_diffusion_steps=20, policy_kwargs=dict(n_diffusion_steps=5))
+    with pytest.raises(TypeError, match="unexpected keyword argument 'n_sampling_steps'"):
+        DACERF("MlpPolicy", "Pendulum-v1", n_sampling_steps=4)
 
 
 class NanRewards(gym.Wrapper):

@@ -3,7 +3,7 @@
 import pytest
 import torch as th
 
-from sb3_dacerf.common import flow_matching_loss
+from sb3_dacerf.dacerf.dacerf import flow_matching_loss
 
 
 def test_value_on_the_straight_path():

@@ -9,7 +9,7 @@ import torch as th
 from gymnasium import spaces
 from torch import nn
 
-from sb3_dacerf.common import flow_matching_loss
+from sb3_dacerf.dacerf.dacerf import flow_matching_loss
 from sb3_dacerf.dacerf.policies import FlowActor
 
 

@@ -24,7 +24,7 @@ import rl_zoo3.hyperparams_opt  # noqa: E402
 import rl_zoo3.utils  # noqa: E402
 
 from sb3_dacerf import DACER, DACERF, DSAC  # noqa: E402
-from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleLayerNorm  # noqa: E402
+from sb3_dacerf.common.policies import BatchRenormCritic, EnsembleLayerNorm  # noqa: E402
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS  # noqa: E402
 from sb3_dacerf.envs.dmc import DMC_ENV_IDS  # noqa: E402
 from sb3_dacerf.zoo import (  # noqa: E402
@@ -229,8 +229,8 @@ def test_sampler_builds_dsac():
         hyperparams = sample_dsac_params(trial, 1, 1, {}, policy_kwargs={"activation_fn": th.nn.ReLU})
         assert convert_dsac_params(trial.params, {"activation_fn": th.nn.ReLU}) == hyperparams
         model = DSAC("MlpPolicy", "Pendulum-v1", buffer_size=1, **hyperparams)
-        assert model.actor.log_alpha.exp().item() == pytest.approx(trial.params["initial_ent_coef"])
-        assert model.critic_loss == trial.params["critic_loss"] and model.tau_b == trial.params["tau_b"]
+        assert model.log_ent_coef.exp().item() == pytest.approx(trial.params["initial_ent_coef"])
+        assert model.tau_b == trial.params["tau_b"]
         assert model.actor.activation_fn is th.nn.ReLU  # the YAML entry's policy_kwargs are kept
         study.tell(trial, 0.0)
 
@@ -281,16 +281,13 @@ def test_sampler_builds_dacerf():
     }
 
 
-def test_convert_dacerf_params_critics_override_yaml_read_earlier_studies_refuse_unknown():
+def test_convert_dacerf_params_critics_override_yaml_refuse_unknown():
     drawn = {"batch_size_pow": 8, "net_arch": "small"}
-    # studies made before the batch-renorm critics were sampled drew critic_layer_norm itself
-    assert convert_dacerf_params({**drawn, "critic_layer_norm": False})["policy_kwargs"]["critic"] == "mlp"
-    # the draw overrides the critics a YAML entry chose, in this version's words or in earlier ones'
-    for yaml_kwargs in ({"critic": "batch_renorm"}, {"critic_batch_renorm": True}):
-        assert convert_dacerf_params({**drawn, "critics": "layer_norm"}, yaml_kwargs)["policy_kwargs"] == {
-            "net_arch": [64, 64],
-            "critic": "layer_norm",
-        }
+    # the draw overrides the critics a YAML entry chose
+    assert convert_dacerf_params({**drawn, "critics": "layer_norm"}, {"critic": "batch_renorm"})["policy_kwargs"] == {
+        "net_arch": [64, 64],
+        "critic": "layer_norm",
+    }
     with pytest.raises(ValueError, match=r"Unknown critics 'crossq'.*'batch_renorm', 'layer_norm', 'mlp'"):
         convert_dacerf_params({**drawn, "critics": "crossq"})
 

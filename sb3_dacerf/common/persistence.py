@@ -28,6 +28,7 @@ from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.preprocessing import check_for_nested_spaces
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.save_util import load_from_zip_file, recursive_setattr
@@ -91,6 +92,8 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
     its actor and critics (``policy.actor``, ``policy.critic``, ``policy.critic_target``) are saved as part of the
     policy, with the optimizers of the actor and of the critics. It adds no constructor argument.
     """
+
+    critic: BaseModel
 
     def save(
         self,

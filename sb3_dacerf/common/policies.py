@@ -1,21 +1,28 @@
-"""What the DACER-F and DACER policies share: a generative actor built by the subclass, twin critics and their targets."""
+"""
+What the policies of the package share: the generative actor base of DACER-F and DACER, the ensemble critics (every
+critic's layer one batched matrix product) and the twin-critic policy that holds an actor, its critics and their
+targets.
+"""
 
+import math
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.buffers import ReplayBufferSamples
+from stable_baselines3.common.policies import BaseModel, BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     FlattenExtractor,
+    create_mlp,
     get_actor_critic_arch,
 )
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
+from torch.nn import functional as F
 
-from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleCritic, LayerNormCritic
 from sb3_dacerf.common.optim import get_optimizer_class
 
 #: The critics of :class:`TwinCriticPolicy` (its ``critic`` argument)
@@ -59,8 +66,8 @@ class GenerativeActor(BasePolicy, ABC):
     action_space: spaces.Box
     #: The generator's network of (state features, action, time), built by the subclass
     network: nn.Sequential
-    #: ``log α`` of the entropy regulator: a buffer (saved with the policy), set and learned by the algorithm
-    log_alpha: th.Tensor
+    #: ``log α`` of the entropy regulator, set (and learned, by its own optimizer) by the algorithm
+    log_alpha: nn.Parameter
 
     def __init__(
         self,
@@ -85,8 +92,9 @@ class GenerativeActor(BasePolicy, ABC):
         self.activation_fn = activation_fn
         self.action_dim = get_action_dim(self.action_space)
         self.exploration_noise_scale = exploration_noise_scale
-        # log α = 0 (α = 1) until the algorithm sets it
-        self.register_buffer("log_alpha", th.zeros(()))
+        # The temperature log α = 0 (α = 1) until the algorithm sets it: a parameter of the actor, whose exploration
+        # noise it scales (saved with the policy), trained by the algorithm's own optimizer when α is learned
+        self.log_alpha = nn.Parameter(th.zeros(()), requires_grad=False)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -157,22 +165,380 @@ class GenerativeActor(BasePolicy, ABC):
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self(observation, deterministic)
 
-    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
-        # Models saved by sb3_dacerf 0.1 named the network after its output: velocity_net (DACERF), noise_net (DACER)
-        for legacy_name in LEGACY_NETWORK_NAMES:
-            legacy_prefix = f"{prefix}{legacy_name}."
-            for key in [key for key in state_dict if key.startswith(legacy_prefix)]:
-                state_dict[f"{prefix}network.{key[len(legacy_prefix) :]}"] = state_dict.pop(key)
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+class EnsembleLinear(nn.Module):
+    """
+    ``n_members`` linear layers applied in one batched product: ``y[j] = x[j] @ weight[j] + bias[j]``.
+
+    :param n_members: Number of members (critics)
+    :param in_features: Size of each input sample
+    :param out_features: Size of each output sample
+    """
+
+    def __init__(self, n_members: int, in_features: int, out_features: int):
+        super().__init__()
+        self._allocate(n_members, in_features, out_features)
+        self.reset_parameters()
+
+    def _allocate(self, n_members: int, in_features: int, out_features: int) -> None:
+        self.n_members, self.in_features, self.out_features = n_members, in_features, out_features
+        #: ``(n_members, in_features, out_features)``: member ``j`` computes ``x @ weight[j]``
+        self.weight = nn.Parameter(th.empty(n_members, in_features, out_features))
+        #: ``(n_members, out_features)``
+        self.bias = nn.Parameter(th.empty(n_members, out_features))
+
+    def reset_parameters(self) -> None:
+        """Initialise each member as ``nn.Linear(in_features, out_features)`` does (the same random draws)."""
+        bound = 1 / math.sqrt(self.in_features) if self.in_features > 0 else 0.0
+        with th.no_grad():
+            for member in range(self.n_members):
+                weight = th.empty(self.out_features, self.in_features)
+                nn.init.kaiming_uniform_(weight, a=math.sqrt(5))
+                self.weight[member].copy_(weight.t())
+                nn.init.uniform_(self.bias[member], -bound, bound)
+
+    @classmethod
+    def from_members(cls, linears: list[nn.Linear]) -> "EnsembleLinear":
+        """An ensemble holding copies of the weights of ``linears`` (with biases, all of one shape)."""
+        first = linears[0]
+        ensemble = cls.__new__(cls)  # without the random initialisation, which the copies below would overwrite
+        nn.Module.__init__(ensemble)
+        ensemble._allocate(len(linears), first.in_features, first.out_features)
+        with th.no_grad():
+            ensemble.weight.copy_(th.stack([linear.weight.t() for linear in linears]))
+            ensemble.bias.copy_(th.stack([_bias(linear) for linear in linears]))
+        return ensemble
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        """
+        :param x: ``(batch, in_features)``, the same input for every member, or ``(n_members, batch, in_features)``
+        :return: ``(n_members, batch, out_features)``
+        """
+        if x.dim() == 2:
+            x = x.expand(self.n_members, *x.shape)
+        return th.baddbmm(self.bias.unsqueeze(1), x, self.weight)
+
+    def extra_repr(self) -> str:
+        return f"n_members={self.n_members}, in_features={self.in_features}, out_features={self.out_features}"
 
 
-#: Former names of :attr:`GenerativeActor.network` in saved models, renamed when they are loaded
-LEGACY_NETWORK_NAMES = ("velocity_net", "noise_net")
+class EnsembleLayerNorm(nn.Module):
+    """
+    ``LayerNorm`` over the last dimension with an affine transform of its own for each member.
+
+    :param n_members: Number of members (critics)
+    :param num_features: Size of the normalised dimension
+    :param eps: Added to the variance, as in ``nn.LayerNorm``
+    """
+
+    def __init__(self, n_members: int, num_features: int, eps: float = 1e-5):
+        super().__init__()
+        self.n_members, self.num_features, self.eps = n_members, num_features, eps
+        self.weight = nn.Parameter(th.ones(n_members, num_features))
+        self.bias = nn.Parameter(th.zeros(n_members, num_features))
+
+    @classmethod
+    def from_members(cls, norms: list[nn.LayerNorm]) -> "EnsembleLayerNorm":
+        """An ensemble holding copies of the affine parameters of ``norms`` (1-d, elementwise affine)."""
+        first = norms[0]
+        ensemble = cls(len(norms), first.normalized_shape[0], first.eps)
+        with th.no_grad():
+            ensemble.weight.copy_(th.stack([norm.weight for norm in norms]))
+            ensemble.bias.copy_(th.stack([norm.bias for norm in norms]))
+        return ensemble
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        """:param x: ``(n_members, batch, num_features)``"""
+        normalised = F.layer_norm(x, (self.num_features,), eps=self.eps)
+        return th.addcmul(self.bias.unsqueeze(1), normalised, self.weight.unsqueeze(1))
+
+    def extra_repr(self) -> str:
+        return f"n_members={self.n_members}, num_features={self.num_features}, eps={self.eps}"
+
+
+class EnsembleBatchRenorm(nn.Module):
+    """
+    Batch renormalisation (Ioffe 2017) with running statistics and an affine transform of its own for each member:
+    the computation of sb3-contrib's ``BatchRenorm1d`` (CrossQ's), member by member. In training mode it normalises
+    with the batch's statistics (corrected towards the running ones after ``warmup_steps`` steps) and updates the
+    running statistics; in evaluation mode it normalises with the running statistics.
+
+    :param n_members: Number of members (critics)
+    :param num_features: Number of features
+    :param eps: Added to the variance
+    :param momentum: Rate of the running averages
+    :param warmup_steps: Steps of plain batch normalisation before the renormalisation
+    """
+
+    def __init__(
+        self, n_members: int, num_features: int, eps: float = 0.001, momentum: float = 0.01, warmup_steps: int = 100_000
+    ):
+        super().__init__()
+        self.n_members, self.num_features = n_members, num_features
+        self.eps, self.momentum, self.warmup_steps = eps, momentum, warmup_steps
+        # Clipping of the renormalisation's correction (r, d), as in sb3-contrib
+        self.rmax, self.dmax = 3.0, 5.0
+        self.register_buffer("ra_mean", th.zeros(n_members, num_features))
+        self.register_buffer("ra_var", th.ones(n_members, num_features))
+        self.register_buffer("steps", th.tensor(0, dtype=th.long))
+        self.scale = nn.Parameter(th.ones(n_members, num_features))
+        self.bias = nn.Parameter(th.zeros(n_members, num_features))
+
+    ra_mean: th.Tensor
+    ra_var: th.Tensor
+    steps: th.Tensor
+
+    @classmethod
+    def from_members(cls, layers: list[Any]) -> "EnsembleBatchRenorm":
+        """An ensemble holding copies of the parameters and statistics of sb3-contrib ``BatchRenorm1d`` layers."""
+        first = layers[0]
+        if not all(layer.affine for layer in layers):
+            raise ValueError("EnsembleBatchRenorm holds affine batch renormalisations only (BatchRenorm1d(affine=True))")
+        ensemble = cls(len(layers), first.num_features, first.eps, first.momentum, first.warmup_steps)
+        with th.no_grad():
+            for name in ("scale", "bias", "ra_mean", "ra_var"):
+                getattr(ensemble, name).copy_(th.stack([getattr(layer, name) for layer in layers]))
+            ensemble.steps.copy_(first.steps)
+        return ensemble
+
+    def normalisation(self) -> tuple[th.Tensor, th.Tensor]:
+        """The affine map of evaluation mode, ``x -> gain * x + shift``: ``gain``, ``shift``, ``(n_members, num_features)``."""
+        gain = self.scale / (self.ra_var + self.eps).sqrt()
+        return gain, self.bias - gain * self.ra_mean
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        """
+        :param x: ``(batch, num_features)`` (the same input for every member) or ``(n_members, batch, num_features)``
+        :return: ``(n_members, batch, num_features)``
+        """
+        if self.training:
+            batch_mean = x.mean(dim=-2)
+            batch_var = x.var(dim=-2)
+            if self.steps > self.warmup_steps:
+                running_std = (self.ra_var + self.eps).sqrt()
+                r = ((batch_var + self.eps).sqrt() / running_std).detach().clamp(1 / self.rmax, self.rmax)
+                d = ((batch_mean - self.ra_mean) / running_std).detach().clamp(-self.dmax, self.dmax)
+                mean, var = batch_mean - d * batch_var.sqrt() / r, batch_var / r**2
+            else:
+                mean, var = batch_mean, batch_var
+            self.ra_mean += self.momentum * (batch_mean.detach() - self.ra_mean)
+            self.ra_var += self.momentum * (batch_var.detach() - self.ra_var)
+            self.steps += 1
+        else:
+            mean, var = self.ra_mean, self.ra_var
+        mean = mean.expand(self.n_members, self.num_features).unsqueeze(1)
+        var = var.expand(self.n_members, self.num_features).unsqueeze(1)
+        normalised = (x - mean) / (var + self.eps).sqrt()
+        return self.scale.unsqueeze(1) * normalised + self.bias.unsqueeze(1)
+
+    def extra_repr(self) -> str:
+        return (
+            f"n_members={self.n_members}, num_features={self.num_features}, momentum={self.momentum}, "
+            f"warmup_steps={self.warmup_steps}"
+        )
+
+
+def ensemble_of(modules: list[nn.Module]) -> nn.Module:
+    """
+    The ensemble layer of the same layer of each member network: :class:`EnsembleLinear` of ``nn.Linear``,
+    :class:`EnsembleLayerNorm` of ``nn.LayerNorm``, :class:`EnsembleBatchRenorm` of sb3-contrib's ``BatchRenorm1d``,
+    the first module itself for parameter-free modules (activations), which act elementwise on any shape.
+    """
+    first = modules[0]
+    if type(first) is nn.Linear:
+        return EnsembleLinear.from_members(modules)  # type: ignore[arg-type]
+    if type(first) is nn.LayerNorm:
+        return EnsembleLayerNorm.from_members(modules)  # type: ignore[arg-type]
+    if type(first).__name__ == "BatchRenorm1d":  # sb3-contrib's (an optional dependency)
+        return EnsembleBatchRenorm.from_members(modules)
+    if any(True for _ in first.parameters()) or any(True for _ in first.buffers()):
+        raise ValueError(
+            f"No ensemble version of {type(first).__name__}: critics are built of Linear, LayerNorm, BatchRenorm1d "
+            "and activations"
+        )
+    return first
+
+
+class EnsembleCritic(BaseModel):
+    """
+    ``n_critics`` Q-networks ``Q_j(s, a) = MLP_j(concat(features(s), a))`` run as one ensemble network
+    (:attr:`ensemble`: :class:`EnsembleLinear` layers with activations between them, normalisation layers in the
+    subclasses). Same arguments and interface as SB3's ``ContinuousCritic``: calling it returns one ``(batch, 1)``
+    tensor per critic; :meth:`q_values` returns them stacked.
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param net_arch: Hidden layer sizes of each Q-network
+    :param features_extractor: Network to extract features (a CNN when using images, a nn.Flatten() layer otherwise)
+    :param features_dim: Number of features
+    :param activation_fn: Activation function
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
+    :param n_critics: Number of critic networks to create.
+    :param share_features_extractor: Whether the features extractor is shared with the actor (it then gets no
+        gradient from the critic)
+    """
+
+    features_extractor: BaseFeaturesExtractor
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        n_critics: int = 2,
+        share_features_extractor: bool = True,
+    ):
+        super().__init__(
+            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
+        )
+        self.share_features_extractor = share_features_extractor
+        self.n_critics = n_critics
+        input_dim = features_dim + get_action_dim(action_space)
+        normalisation = self.normalisation_modules()
+        members = [nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, **normalisation)) for _ in range(n_critics)]
+        self.ensemble = nn.Sequential(*[ensemble_of(list(layers)) for layers in zip(*members, strict=True)])
+
+    @classmethod
+    def normalisation_modules(cls) -> dict[str, Any]:
+        """``pre_linear_modules`` and/or ``post_linear_modules`` of ``create_mlp`` for each member (none here)."""
+        return {}
+
+    def critic_features(self, obs: PyTorchObs) -> th.Tensor:
+        """The features of ``obs`` (without gradient to a features extractor shared with the actor)."""
+        with th.set_grad_enabled(not self.share_features_extractor):
+            return self.extract_features(obs, self.features_extractor)
+
+    def q_values_of_features(self, features: th.Tensor, actions: th.Tensor) -> th.Tensor:
+        """
+        :param features: State features ``(batch, features_dim)``
+        :param actions: Actions ``(batch, action_dim)``
+        :return: Every critic's ``Q_j(s, a)``, ``(n_critics, batch, 1)``
+        """
+        return self.ensemble(th.cat([features, actions], dim=1))
+
+    def q_values(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """Every critic's ``Q_j(s, a)``, ``(n_critics, batch, 1)``."""
+        return self.q_values_of_features(self.critic_features(obs), actions)
+
+    def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
+        """One ``(batch, 1)`` tensor per critic, as SB3's ``ContinuousCritic``."""
+        return tuple(self.q_values(obs, actions).unbind(0))
+
+    def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """The first critic's ``Q_1(s, a)``, ``(batch, 1)``, as SB3's ``ContinuousCritic.q1_forward``."""
+        return self.q_values(obs, actions)[0]
+
+
+class LayerNormCritic(EnsembleCritic):
+    """
+    Ensemble critics with ``LayerNorm`` after every hidden linear layer (before the activation), as in the critics
+    of BRO, SimBa and FlowRL: normalised features keep the Q-values and ``∇_a Q`` (which drives the Langevin
+    targets) on a stable scale. Same arguments as :class:`EnsembleCritic`.
+    """
+
+    @classmethod
+    def normalisation_modules(cls) -> dict[str, Any]:
+        return dict(post_linear_modules=[nn.LayerNorm])
+
+
+class BatchRenormCritic(EnsembleCritic):
+    """
+    Ensemble critics with CrossQ's batch renormalisation (sb3-contrib's ``BatchRenorm1d`` computation, momentum
+    0.01) before every linear layer. The layers normalise with the running statistics except while
+    :meth:`set_bn_training_mode` has them in training mode: the algorithm turns that on only for the critic update's
+    joint forward pass over ``(s, a)`` and ``(s', a')``. Same arguments as :class:`EnsembleCritic`.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.set_bn_training_mode(False)
+
+    @classmethod
+    def normalisation_modules(cls) -> dict[str, Any]:
+        try:
+            from sb3_contrib.common.torch_layers import BatchRenorm1d
+        except ImportError as error:
+            raise ImportError("critic='batch_renorm' uses sb3-contrib's BatchRenorm1d: pip install 'sb3-contrib>=2.4'") from error
+        return dict(pre_linear_modules=[BatchRenorm1d])
+
+    def set_training_mode(self, mode: bool) -> None:
+        super().set_training_mode(mode)
+        # The normalisation layers leave running-statistics mode only through set_bn_training_mode
+        self.set_bn_training_mode(False)
+
+    def set_bn_training_mode(self, mode: bool) -> None:
+        """
+        :param mode: Normalise with the batch's statistics and update the running ones (``True``), or normalise with
+            the running statistics (``False``)
+        """
+        for module in self.modules():
+            if isinstance(module, EnsembleBatchRenorm):
+                module.train(mode)
+
+
+def twin_critic_loss(
+    critic: EnsembleCritic, critic_target: EnsembleCritic, replay_data: ReplayBufferSamples, next_actions: th.Tensor, gamma: float
+) -> th.Tensor:
+    """
+    The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` on a replay batch, with the Bellman target
+    ``y = r + γ (1 - done) min_j Q̄_j(s', a')`` (the critics themselves instead of the targets with CrossQ's critics,
+    whose running statistics this pass updates).
+
+    :param critic: The critics ``Q_i``
+    :param critic_target: Their targets ``Q̄_j``
+    :param replay_data: A batch of the replay buffer
+    :param next_actions: ``a' ~ π(·|s')`` ``(batch, action_dim)``, without gradient
+    :param gamma: The discount factor (``replay_data.discounts`` replace it for n-step returns)
+    :return: The loss, differentiable with respect to the critics
+    """
+    # For n-step replay, discount factor is gamma**n_steps (when no early termination)
+    discounts = replay_data.discounts if replay_data.discounts is not None else gamma
+    if isinstance(critic, BatchRenormCritic):
+        # CrossQ's critics: no target networks; one forward pass over (s, a) and (s', a') so that the batch statistics
+        # are those of both, in training mode for this pass only
+        critic.set_bn_training_mode(True)
+        try:
+            all_q_values = critic.q_values(
+                _cat_observations(replay_data.observations, replay_data.next_observations),
+                th.cat([replay_data.actions, next_actions], dim=0),
+            )
+        finally:  # back to the running statistics even if the pass fails, so no later pass updates them
+            critic.set_bn_training_mode(False)
+        current_q_values, next_q_values = th.split(all_q_values, replay_data.actions.shape[0], dim=1)
+        next_q_values = next_q_values.detach()
+    else:
+        with th.no_grad():
+            next_q_values = critic_target.q_values(replay_data.next_observations, next_actions)
+        current_q_values = critic.q_values(replay_data.observations, replay_data.actions)
+    with th.no_grad():
+        # (n_critics, batch, 1) -> (batch, 1)
+        target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q_values.min(dim=0).values
+    # 0.5 * sum_j mean((Q_j - y)^2): every critic's MSE, from the stacked Q-values in one pass
+    return 0.5 * (current_q_values - target_q_values).pow(2).mean(dim=(1, 2)).sum()
+
+
+def _cat_observations(first: PyTorchObs, second: PyTorchObs) -> PyTorchObs:
+    """Two batches of observations (tensors, or dicts of tensors) as one."""
+    if isinstance(first, dict):
+        assert isinstance(second, dict)
+        return {key: th.cat([first[key], second[key]], dim=0) for key in first}
+    assert isinstance(first, th.Tensor) and isinstance(second, th.Tensor)
+    return th.cat([first, second], dim=0)
+
+
+def _bias(linear: nn.Linear) -> th.Tensor:
+    if linear.bias is None:
+        raise ValueError("EnsembleLinear holds linear layers with a bias only")
+    return linear.bias
 
 
 class TwinCriticPolicy(BasePolicy):
     """
-    Policy class (generative actor and twin critics) of the algorithms of this package.
+    Policy class (an actor, twin critics and their targets) of the algorithms of this package.
 
     Subclasses name their actor class in ``actor_class`` and pass its own keyword arguments in ``actor_kwargs``;
     the actor samples actions in [-1, 1] when called on observations.
@@ -193,7 +559,7 @@ class TwinCriticPolicy(BasePolicy):
     :param optimizer_kwargs: Additional keyword arguments,
         excluding the learning rate, to pass to the optimizer
     :param n_critics: Number of critic networks to create (run together, each layer of all of them one batched
-        matrix product: :class:`~sb3_dacerf.common.ensemble.EnsembleCritic`)
+        matrix product: :class:`EnsembleCritic`)
     :param share_features_extractor: Whether to share or not the features extractor
         between the actor and the critic (this saves computation time)
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
@@ -201,14 +567,13 @@ class TwinCriticPolicy(BasePolicy):
         ``"layer_norm"`` (``LayerNorm`` after every hidden layer: :class:`LayerNormCritic`) or ``"batch_renorm"``
         (CrossQ's critics, batch renormalisation before every linear layer: :class:`BatchRenormCritic`, needs
         sb3-contrib; no target networks: the algorithm then bootstraps from the critics themselves, in one forward
-        pass over the current and the next state-action pairs). The booleans ``critic_layer_norm`` and
-        ``critic_batch_renorm`` of earlier versions are converted to it by the algorithms, with a ``FutureWarning``
+        pass over the current and the next state-action pairs).
     """
 
-    actor_class: ClassVar[type[GenerativeActor]]
-    actor: GenerativeActor
-    critic: EnsembleCritic
-    critic_target: EnsembleCritic
+    actor_class: ClassVar[type[BasePolicy]]
+    actor: BasePolicy
+    critic: BaseModel
+    critic_target: BaseModel
 
     def __init__(
         self,
@@ -272,7 +637,8 @@ class TwinCriticPolicy(BasePolicy):
     def _build(self, lr_schedule: Schedule) -> None:
         self.actor = self.make_actor()
         self.actor.optimizer = self.optimizer_class(
-            self.actor.parameters(),
+            # the temperature log α, a parameter of generative actors, has the algorithm's optimizer
+            [param for name, param in self.actor.named_parameters() if name != "log_alpha"],
             lr=lr_schedule(1),  # type: ignore[call-arg]
             **self.optimizer_kwargs,
         )
@@ -316,11 +682,11 @@ class TwinCriticPolicy(BasePolicy):
         )
         return data
 
-    def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> GenerativeActor:
+    def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> BasePolicy:
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
         return self.actor_class(**actor_kwargs).to(self.device)
 
-    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> EnsembleCritic:
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> BaseModel:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         critic_classes: dict[str, type[EnsembleCritic]] = {
             "mlp": EnsembleCritic,

@@ -1,94 +1,104 @@
 """
-What DACER-F and DACER share: twin critics with target networks, trained by the clipped double-Q Bellman loss.
-
-The algorithm is here; its checks are in :mod:`sb3_dacerf.common.validation` and its saving and loading in
-:mod:`sb3_dacerf.common.persistence`, whose public names this module re-exports.
+The base class of the package's algorithms: what DACER-F, DACER and DSAC share between SB3's ``OffPolicyAlgorithm``
+and their own ``train()``.
 """
 
+import math
 import warnings
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from typing import Any, ClassVar, TypeVar
 
+import numpy as np
 import torch as th
-from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBufferSamples
-from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.policies import BaseModel, BasePolicy
+from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 
-from sb3_dacerf.common.ensemble import BatchRenormCritic, EnsembleCritic
-from sb3_dacerf.common.persistence import TwinCriticPersistence, saved_algorithm_name
-from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
+from sb3_dacerf.common.persistence import TwinCriticPersistence
+from sb3_dacerf.common.policies import BatchRenormCritic, TwinCriticPolicy
+from sb3_dacerf.common.utils import non_finite_entries
 from sb3_dacerf.common.validation import (
     HyperparameterRule,
     NonFiniteLossError,
-    TwinCriticChecks,
-    UnsupportedActionSpaceError,
-    check_action_space,
+    initial_ent_coef,
     integer_at_least,
     resolve_target_entropy,
 )
 
-__all__ = [
-    "HyperparameterRule",
-    "NonFiniteLossError",
-    "TwinCriticAlgorithm",
-    "UnsupportedActionSpaceError",
-    "check_action_space",
-    "integer_at_least",
-    "min_q",
-    "resolve_target_entropy",
-    "saved_algorithm_name",
-]
-
 SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAlgorithm")
 
 
-class TwinCriticAlgorithm(TwinCriticChecks, TwinCriticPersistence):
+@contextmanager
+def frozen(parameters: Iterable[th.nn.Parameter]) -> Iterator[None]:
     """
-    Base of the generative-policy actor-critics of this package: an actor ``policy.actor`` that samples actions
-    in [-1, 1] when called on observations, and twin critics ``policy.critic`` with targets ``policy.critic_target``.
+    Stop gradients from reaching ``parameters`` inside the block (they still flow through them to the inputs),
+    so that e.g. ``∇_a Q(s, a)`` costs no parameter gradients and the critic's ``.grad`` stays untouched.
 
-    Subclasses take their own hyper-parameters (``policy_delay`` among them), pass the others on to this
-    constructor, then call ``_setup_model()``, which first calls :meth:`_check_hyperparameters`: each rule of the
-    class attribute ``hyperparameter_rules`` is checked against the hyper-parameter of its name. A subclass adds the
-    rules of its own hyper-parameters to it (``{**TwinCriticAlgorithm.hyperparameter_rules, ...}``) and overrides
-    :meth:`_check_hyperparameters` for checks a range cannot express. Subclasses implement ``train()`` with
-    :meth:`_update_critic` and :meth:`_update_targets` around their actor update. The checks (hyper-parameter rules,
-    non-finite losses and observations) come from :class:`~sb3_dacerf.common.validation.TwinCriticChecks`, saving and
-    loading from :class:`~sb3_dacerf.common.persistence.TwinCriticPersistence`.
-
-    :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
-    :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: learning rate for the optimizer of the actor and of the critics,
-        it can be a function of the current progress remaining (from 1 to 0)
-    :param kwargs: The arguments of SB3's ``OffPolicyAlgorithm``, with its defaults (those of SAC):
-        ``buffer_size`` (1e6), ``learning_starts`` (100), ``batch_size`` (256), ``tau`` (0.005), ``gamma`` (0.99),
-        ``train_freq`` (1), ``gradient_steps`` (1), ``action_noise`` (added to the policy's own samples during
-        rollouts), ``replay_buffer_class``, ``replay_buffer_kwargs``, ``optimize_memory_usage``, ``n_steps``,
-        ``policy_kwargs``, ``stats_window_size``, ``tensorboard_log``, ``verbose``, ``device``, ``seed``
+    :param parameters: Parameters to freeze; those already frozen stay frozen afterwards
     """
+    to_restore = [param for param in parameters if param.requires_grad]
+    for param in to_restore:
+        param.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for param in to_restore:
+            param.requires_grad_(True)
+
+
+class TwinCriticAlgorithm(TwinCriticPersistence):
+    """
+    Base of the algorithms of this package: an actor ``policy.actor`` that samples actions in [-1, 1] when called
+    on observations, twin critics ``policy.critic`` with targets ``policy.critic_target``, and a temperature ``α``
+    (``ent_coef``) fixed or learned towards ``target_entropy``.
+
+    It holds what every algorithm shares: the checks (hyper-parameter rules, the action space, non-finite losses and
+    observations, each with an error that names the problem and the fix), the temperature's set-up, the Polyak update
+    of the targets, and ``learn()``'s final logs. Subclasses take their own hyper-parameters, pass the others on to
+    this constructor, then call ``_setup_model()``, which first checks each rule of the class attribute
+    ``hyperparameter_rules`` against the hyper-parameter of its name; a subclass adds its own rules
+    (``{**TwinCriticAlgorithm.hyperparameter_rules, ...}``) and overrides :meth:`_check_hyperparameters` for checks a
+    range cannot express. Saving and loading come from :class:`~sb3_dacerf.common.persistence.TwinCriticPersistence`.
+
+    It adds no constructor argument: the algorithms pass SB3's to ``OffPolicyAlgorithm``.
+    """
+
+    #: Valid values of the numeric hyper-parameters, checked before the model is built: name -> rule. The value
+    #: checked is the entry of ``policy_kwargs`` of that name if there is one (e.g. ``n_sampling_steps``), else the
+    #: algorithm's attribute.
+    hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
+        "batch_size": integer_at_least(1, "a positive integer"),
+        "buffer_size": integer_at_least(1, "a positive integer (the replay buffer's capacity in transitions)"),
+        "tau": HyperparameterRule(lambda value: 0 < value <= 1, "in (0, 1]"),
+        "gamma": HyperparameterRule(lambda value: 0 <= value <= 1, "in [0, 1]"),
+        "n_steps": integer_at_least(1, "a positive integer (1: one-step targets)"),
+        "policy_delay": integer_at_least(1),
+    }
+    #: The initial ``α`` of ``ent_coef="auto"``, and the valid values of ``ent_coef`` in words
+    auto_ent_coef: ClassVar[float] = 3.0
+    ent_coef_values: ClassVar[str] = "'auto', 'auto_<initial α > 0>' (e.g. 'auto_0.5') or a number >= 0 (fixed α)"
 
     policy: TwinCriticPolicy
-    actor: GenerativeActor
-    critic: EnsembleCritic
-    critic_target: EnsembleCritic
+    actor: BasePolicy
+    critic: BaseModel
+    critic_target: BaseModel
+    policy_delay: int
+    ent_coef: str | float
+    target_entropy: str | float
+    ent_coef_optimizer: th.optim.Adam | None = None
 
-    def __init__(
-        self,
-        policy: str | type[BasePolicy],
-        env: GymEnv | str | None,
-        learning_rate: float | Schedule = 3e-4,
-        **kwargs: Any,
-    ):
-        if env is not None:
-            # Made here (not in the base class) so the action space is checked before SB3's own assertions
-            env = maybe_make_env(env, kwargs.get("verbose", 0))
-            check_action_space(env.action_space, algorithm=type(self).__name__)
-        # The action space is checked above, with an error that says what to do instead
-        kwargs.update(supported_action_spaces=None, support_multi_env=True, sde_support=False)
-        # SB3 annotates OffPolicyAlgorithm's env without None, which its own load() passes
-        super().__init__(policy, env, learning_rate, **kwargs)  # type: ignore[arg-type]
+    def _check_hyperparameters(self) -> None:
+        """
+        Check every hyper-parameter named in ``hyperparameter_rules``, and ``ent_coef``.
+
+        :raises ValueError: naming the first invalid value and its valid range
+        """
+        for name, rule in self.hyperparameter_rules.items():
+            rule.check(name, self.policy_kwargs[name] if name in self.policy_kwargs else getattr(self, name))
+        initial_ent_coef(self.ent_coef, self.auto_ent_coef, self.ent_coef_values)
 
     def _setup_model(self) -> None:
         # Before anything is built: a wrong value fails here, with its valid range
@@ -109,67 +119,33 @@ class TwinCriticAlgorithm(TwinCriticChecks, TwinCriticPersistence):
         self.critic = self.policy.critic
         self.critic_target = self.policy.critic_target
 
-    def _min_q(self, observations: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        """``min_j Q_j(s, a)`` over the critics, shape ``(batch, 1)``."""
-        return min_q(self.critic, observations, actions)
+    def _setup_temperature(self, log_alpha: th.Tensor, auto_target_entropy: float, learning_rate: float) -> None:
+        """
+        Set ``log α`` (``log_alpha``, updated in place) from ``ent_coef``, resolve ``target_entropy``, and create
+        the temperature's optimizer when ``α`` is learned.
+
+        :param log_alpha: The leaf tensor that holds ``log α``
+        :param auto_target_entropy: The target entropy of ``target_entropy="auto"``
+        :param learning_rate: Adam's learning rate for ``log α``
+        """
+        self.target_entropy = resolve_target_entropy(self.target_entropy, auto_target_entropy)
+        alpha = initial_ent_coef(self.ent_coef, self.auto_ent_coef, self.ent_coef_values)
+        with th.no_grad():
+            log_alpha.fill_(math.log(alpha) if alpha > 0 else -math.inf)
+        log_alpha.requires_grad_(isinstance(self.ent_coef, str))
+        self.ent_coef_optimizer = th.optim.Adam([log_alpha], lr=learning_rate) if isinstance(self.ent_coef, str) else None
 
     def _critic_parameters(self) -> list[th.nn.Parameter]:
         """The critic's own parameters (not those of a features extractor shared with the actor), to freeze."""
         return self.critic.optimizer.param_groups[0]["params"]
 
-    def _update_critic(self, replay_data: ReplayBufferSamples) -> float:
-        """
-        One gradient step on ``J_Q = E[(r + γ (1 - done) min_j Q̄_j(s', a') - Q_i(s, a))²]`` with ``a' ~ π(·|s')``.
-
-        :return: The critic loss
-        """
-        critic_loss = self.critic_terms(replay_data)["loss"]
-        loss = self._checked(critic_loss, "critic loss", replay_data)
-
-        self.critic.optimizer.zero_grad()
-        critic_loss.backward()
-        self.critic.optimizer.step()
-        return loss
-
-    def critic_terms(self, replay_data: ReplayBufferSamples) -> dict[str, th.Tensor]:
-        """
-        The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` on a replay batch, with the Bellman target
-        ``y = r + γ (1 - done) min_j Q̄_j(s', a')``, ``a' ~ π(·|s')`` (the critics themselves instead of the targets
-        with CrossQ's critics, whose running statistics this pass updates).
-
-        :param replay_data: A batch of the replay buffer
-        :return: ``loss`` (differentiable with respect to the critics), ``target_q_values`` ``y`` ``(batch, 1)`` and
-            ``current_q_values`` ``(n_critics, batch, 1)`` (detached)
-        """
-        # For n-step replay, discount factor is gamma**n_steps (when no early termination)
-        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-        with th.no_grad():
-            next_actions = self.actor(replay_data.next_observations)
-        critic = self.critic
-        if isinstance(critic, BatchRenormCritic):
-            # CrossQ's critics (critic="batch_renorm"): no target networks; one forward pass over (s, a) and (s', a') so
-            # that the batch statistics are those of both, in training mode for this pass only
-            critic.set_bn_training_mode(True)
-            try:
-                all_q_values = critic.q_values(
-                    _cat_observations(replay_data.observations, replay_data.next_observations),
-                    th.cat([replay_data.actions, next_actions], dim=0),
-                )
-            finally:  # back to the running statistics even if the pass fails, so no later pass updates them
-                critic.set_bn_training_mode(False)
-            current_q_values, next_q_values = th.split(all_q_values, replay_data.actions.shape[0], dim=1)
-            next_q_values = next_q_values.detach()
-        else:
-            with th.no_grad():
-                next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
-            current_q_values = critic.q_values(replay_data.observations, replay_data.actions)
-        with th.no_grad():
-            # (n_critics, batch, 1) -> (batch, 1)
-            target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q_values.min(dim=0).values
-
-        # 0.5 * sum_j mean((Q_j - y)^2): every critic's MSE, from the stacked Q-values in one pass
-        critic_loss = 0.5 * (current_q_values - target_q_values).pow(2).mean(dim=(1, 2)).sum()
-        return dict(loss=critic_loss, target_q_values=target_q_values, current_q_values=current_q_values.detach())
+    def _step(self, optimizer: th.optim.Optimizer, loss: th.Tensor, name: str, replay_data: ReplayBufferSamples) -> float:
+        """One gradient step of ``optimizer`` on ``loss`` (checked to be finite first); returns the loss."""
+        value = self._checked(loss, name, replay_data)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        return value
 
     def _update_targets(self) -> None:
         """Polyak update of the target critics: ``Q̄ <- (1 - τ) Q̄ + τ Q`` (none with CrossQ's critics)."""
@@ -178,6 +154,72 @@ class TwinCriticAlgorithm(TwinCriticChecks, TwinCriticPersistence):
         polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
         # Copy running stats, see GH issue #996
         polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
+
+    def _checked(self, loss: th.Tensor, name: str, replay_data: ReplayBufferSamples) -> float:
+        """Return the loss as a float; stop before the optimizer step (the model stays usable) if it is not finite."""
+        value = loss.item()
+        if math.isfinite(value):
+            return value
+        suspects = []
+        for field in ("observations", "actions", "rewards", "next_observations"):
+            tensors = getattr(replay_data, field)
+            tensors = tensors.values() if isinstance(tensors, dict) else [tensors]
+            if not all(th.isfinite(tensor).all() for tensor in tensors):
+                suspects.append(field)
+        cause = (
+            f"the replay buffer holds non-finite {', '.join(suspects)}: the environment returned NaN/inf "
+            "(wrap it with stable_baselines3.common.vec_env.VecCheckNan to find the step)"
+            if suspects
+            else "the Q-values diverged: lower the learning rate, scale the rewards down "
+            "(e.g. VecNormalize(norm_reward=True)) or use a smaller tau"
+        )
+        raise NonFiniteLossError(
+            f"{type(self).__name__}: non-finite {name} ({value}) at update {self._n_updates}; {cause}. No parameter was updated."
+        )
+
+    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
+        learning_rate = self.lr_schedule(self._current_progress_remaining)
+        if not (isinstance(learning_rate, (int, float, np.number)) and math.isfinite(learning_rate) and learning_rate >= 0):
+            raise ValueError(
+                f"{type(self).__name__}: the learning-rate schedule gave {learning_rate!r} at progress remaining "
+                f"{self._current_progress_remaining:.4g}; a learning rate must be a finite number >= 0 at every progress "
+                "in [0, 1] (e.g. clip the schedule at 0)."
+            )
+        super()._update_learning_rate(optimizers)
+
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """
+        See :meth:`BaseAlgorithm.predict`. An observation with NaN or infinite entries raises a ``ValueError`` that
+        names them (the policy would return NaN actions).
+        """
+        bad = non_finite_entries(observation)
+        if bad is not None:
+            raise ValueError(
+                f"{type(self).__name__}.predict: the observation has non-finite entries ({bad}), from which the policy "
+                "can only compute NaN actions. Replace them before calling predict (e.g. numpy.nan_to_num) or find "
+                "where they come from (a sensor, a wrapper, division by zero)."
+            )
+        return super().predict(observation, state, episode_start, deterministic)
+
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        # During learn(), before any action is computed from the last observation and stepped into the environment
+        bad = non_finite_entries(self._last_obs)
+        if bad is not None:
+            raise ValueError(
+                f"{type(self).__name__}.learn: the environment returned an observation with non-finite entries ({bad}; "
+                f"obs[env index, ...]) at step {self.num_timesteps}. No action was taken from it. Find the step with "
+                "stable_baselines3.common.vec_env.VecCheckNan(env, raise_exception=True) and fix the environment "
+                "(or clip / replace the values in a wrapper)."
+            )
+        return super()._sample_action(learning_starts, action_noise, n_envs)
 
     def learn(
         self: SelfTwinCriticAlgorithm,
@@ -231,21 +273,8 @@ class TwinCriticAlgorithm(TwinCriticChecks, TwinCriticPersistence):
             )
         return self
 
-
-def min_q(critic: Callable[[PyTorchObs, th.Tensor], Any], observations: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-    """
-    ``min_j Q_j(s, a)`` over the critics of an :class:`~sb3_dacerf.common.ensemble.EnsembleCritic` (DACERF's,
-    DACER's) or of an SB3 ``ContinuousCritic`` (SAC's, TD3's), shape ``(batch, 1)``.
-    """
-    if isinstance(critic, EnsembleCritic):
-        return critic.q_values(observations, actions).min(dim=0).values
-    return th.min(th.cat(critic(observations, actions), dim=1), dim=1, keepdim=True).values
-
-
-def _cat_observations(first: PyTorchObs, second: PyTorchObs) -> PyTorchObs:
-    """Two batches of observations (tensors, or dicts of tensors) as one."""
-    if isinstance(first, dict):
-        assert isinstance(second, dict)
-        return {key: th.cat([first[key], second[key]], dim=0) for key in first}
-    assert isinstance(first, th.Tensor) and isinstance(second, th.Tensor)
-    return th.cat([first, second], dim=0)
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, saved_variables = super()._get_torch_save_params()
+        if self.ent_coef_optimizer is not None:
+            state_dicts = [*state_dicts, "ent_coef_optimizer"]
+        return state_dicts, saved_variables

@@ -4,31 +4,12 @@ import glob
 import os
 import re
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch as th
-
-
-@contextmanager
-def frozen(parameters: Iterable[th.nn.Parameter]) -> Iterator[None]:
-    """
-    Stop gradients from reaching ``parameters`` inside the block (they still flow through them to the inputs),
-    so that e.g. ``∇_a Q(s, a)`` costs no parameter gradients and the critic's ``.grad`` stays untouched.
-
-    :param parameters: Parameters to freeze; those already frozen stay frozen afterwards
-    """
-    to_restore = [param for param in parameters if param.requires_grad]
-    for param in to_restore:
-        param.requires_grad_(False)
-    try:
-        yield
-    finally:
-        for param in to_restore:
-            param.requires_grad_(True)
 
 
 def _new_file_mode() -> int:
@@ -137,8 +118,3 @@ def non_finite_entries(observation: Any, name: str = "obs", limit: int = 5) -> s
         return None
     more = f" and {count - len(listed)} more" if count > len(listed) else ""
     return ", ".join(listed) + more
-
-
-def is_batch_renorm(module: th.nn.Module) -> bool:
-    """Whether ``module`` is sb3-contrib's ``BatchRenorm1d`` (recognised by name: sb3-contrib is an optional dependency)."""
-    return type(module).__name__ == "BatchRenorm1d"

@@ -1,22 +1,18 @@
 """
-The checks of :class:`~sb3_dacerf.common.twin_critic.TwinCriticAlgorithm`: its exceptions, the rules that the
-constructors check their hyper-parameters against, the action-space check, and the checks during training and
-prediction (non-finite losses and observations), each with an error that names the problem and the fix.
+The exceptions of the package's algorithms, the rules that their constructors check hyper-parameters against, and
+the checks of the action space and of the temperature's settings, each with an error that names the problem and
+the fix.
 """
 
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
-import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.buffers import ReplayBufferSamples
-from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-
-from sb3_dacerf.common.utils import non_finite_entries
+from stable_baselines3.common.base_class import maybe_make_env
+from stable_baselines3.common.type_aliases import GymEnv
 
 
 class NonFiniteLossError(RuntimeError, ValueError):
@@ -63,98 +59,16 @@ def integer_at_least(minimum: int, valid_range: str | None = None) -> Hyperparam
     )
 
 
-class TwinCriticChecks(OffPolicyAlgorithm):
+def made_env(env: GymEnv | str | None, algorithm: str, verbose: int) -> GymEnv | None:
     """
-    The checks of :class:`~sb3_dacerf.common.twin_critic.TwinCriticAlgorithm`, which derives from this class: the
-    hyper-parameter rules, and the per-step checks that a loss, an observation of the environment and an observation
-    given to ``predict`` are finite. It adds no constructor argument.
+    The environment SB3 makes of ``env`` (``None`` stays ``None``), its action space checked by
+    :func:`check_action_space` before SB3's own assertions, which do not say what to do instead.
     """
-
-    #: Valid values of the numeric hyper-parameters, checked before the model is built: name -> rule. The value
-    #: checked is the entry of ``policy_kwargs`` of that name if there is one (e.g. ``n_sampling_steps``), else the
-    #: algorithm's attribute.
-    hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
-        "batch_size": integer_at_least(1, "a positive integer"),
-        "buffer_size": integer_at_least(1, "a positive integer (the replay buffer's capacity in transitions)"),
-        "tau": HyperparameterRule(lambda value: 0 < value <= 1, "in (0, 1]"),
-        "gamma": HyperparameterRule(lambda value: 0 <= value <= 1, "in [0, 1]"),
-        "n_steps": integer_at_least(1, "a positive integer (1: one-step targets)"),
-    }
-
-    def _check_hyperparameters(self) -> None:
-        """
-        Check every hyper-parameter named in ``hyperparameter_rules``.
-
-        :raises ValueError: naming the first invalid value and its valid range
-        """
-        for name, rule in self.hyperparameter_rules.items():
-            rule.check(name, self.policy_kwargs[name] if name in self.policy_kwargs else getattr(self, name))
-
-    def _checked(self, loss: th.Tensor, name: str, replay_data: ReplayBufferSamples) -> float:
-        """Return the loss as a float; stop before the optimizer step (the model stays usable) if it is not finite."""
-        value = loss.item()
-        if math.isfinite(value):
-            return value
-        suspects = []
-        for field in ("observations", "actions", "rewards", "next_observations"):
-            tensors = getattr(replay_data, field)
-            tensors = tensors.values() if isinstance(tensors, dict) else [tensors]
-            if not all(th.isfinite(tensor).all() for tensor in tensors):
-                suspects.append(field)
-        cause = (
-            f"the replay buffer holds non-finite {', '.join(suspects)}: the environment returned NaN/inf "
-            "(wrap it with stable_baselines3.common.vec_env.VecCheckNan to find the step)"
-            if suspects
-            else "the Q-values diverged: lower the learning rate, scale the rewards down "
-            "(e.g. VecNormalize(norm_reward=True)) or use a smaller tau"
-        )
-        raise NonFiniteLossError(
-            f"{type(self).__name__}: non-finite {name} ({value}) at update {self._n_updates}; {cause}. No parameter was updated."
-        )
-
-    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
-        learning_rate = self.lr_schedule(self._current_progress_remaining)
-        if not (isinstance(learning_rate, (int, float, np.number)) and math.isfinite(learning_rate) and learning_rate >= 0):
-            raise ValueError(
-                f"{type(self).__name__}: the learning-rate schedule gave {learning_rate!r} at progress remaining "
-                f"{self._current_progress_remaining:.4g}; a learning rate must be a finite number >= 0 at every progress "
-                "in [0, 1] (e.g. clip the schedule at 0)."
-            )
-        super()._update_learning_rate(optimizers)
-
-    def predict(
-        self,
-        observation: np.ndarray | dict[str, np.ndarray],
-        state: tuple[np.ndarray, ...] | None = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = False,
-    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
-        """
-        See :meth:`BaseAlgorithm.predict`. An observation with NaN or infinite entries raises a ``ValueError`` that
-        names them (the policy would return NaN actions).
-        """
-        bad = non_finite_entries(observation)
-        if bad is not None:
-            raise ValueError(
-                f"{type(self).__name__}.predict: the observation has non-finite entries ({bad}), from which the policy "
-                "can only compute NaN actions. Replace them before calling predict (e.g. numpy.nan_to_num) or find "
-                "where they come from (a sensor, a wrapper, division by zero)."
-            )
-        return super().predict(observation, state, episode_start, deterministic)
-
-    def _sample_action(
-        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
-    ) -> tuple[np.ndarray, np.ndarray]:
-        # During learn(), before any action is computed from the last observation and stepped into the environment
-        bad = non_finite_entries(self._last_obs)
-        if bad is not None:
-            raise ValueError(
-                f"{type(self).__name__}.learn: the environment returned an observation with non-finite entries ({bad}; "
-                f"obs[env index, ...]) at step {self.num_timesteps}. No action was taken from it. Find the step with "
-                "stable_baselines3.common.vec_env.VecCheckNan(env, raise_exception=True) and fix the environment "
-                "(or clip / replace the values in a wrapper)."
-            )
-        return super()._sample_action(learning_starts, action_noise, n_envs)
+    if env is None:
+        return None
+    env = maybe_make_env(env, verbose)
+    check_action_space(env.action_space, algorithm)
+    return env
 
 
 def check_action_space(action_space: spaces.Space, algorithm: str) -> None:

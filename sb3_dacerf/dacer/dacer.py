@@ -1,6 +1,3 @@
-import io
-import math
-import pathlib
 from typing import Any, ClassVar
 
 import numpy as np
@@ -9,18 +6,11 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 
-from sb3_dacerf.common.deprecation import (
-    critic_from_flags,
-    policy_kwarg_from_argument,
-    reject_unknown_arguments,
-    warn_renamed,
-)
-from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
-from sb3_dacerf.common.utils import frozen
-from sb3_dacerf.common.validation import HyperparameterRule, initial_ent_coef, integer_at_least, resolve_target_entropy
+from sb3_dacerf.common.policies import EnsembleCritic, twin_critic_loss
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
+from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least, made_env
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
 from sb3_dacerf.dacer.policies import CnnPolicy, DACERPolicy, DiffusionActor, MlpPolicy, MultiInputPolicy
 
@@ -84,7 +74,7 @@ class DACER(TwinCriticAlgorithm):
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
-        ``dict(net_arch=[256, 256], n_diffusion_steps=20, beta_schedule="linear", exploration_noise_scale=0.1)``:
+        ``dict(net_arch=[256, 256], n_diffusion_steps=20, exploration_noise_scale=0.1)``:
         ``n_diffusion_steps`` is the number of reverse diffusion steps per action (20 in both papers, the default);
         see :class:`~sb3_dacerf.dacer.policies.DACERPolicy` for the others
     :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
@@ -93,9 +83,6 @@ class DACER(TwinCriticAlgorithm):
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
-    :param removed_arguments: Arguments of earlier versions, converted with a ``FutureWarning``: ``n_diffusion_steps``
-        (now in ``policy_kwargs``) and ``initial_log_alpha`` (now ``ent_coef="auto_<exp(initial_log_alpha)>"``);
-        anything else raises a ``TypeError``, as Python does
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -106,7 +93,6 @@ class DACER(TwinCriticAlgorithm):
     #: DACER's own hyper-parameters with their valid values, besides those of every algorithm of the package
     hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
         **TwinCriticAlgorithm.hyperparameter_rules,
-        "policy_delay": integer_at_least(1),
         "n_diffusion_steps": integer_at_least(1),  # in policy_kwargs
         "alpha_learning_rate": HyperparameterRule(lambda value: value > 0, "> 0"),
         "alpha_update_interval": integer_at_least(1),
@@ -114,6 +100,11 @@ class DACER(TwinCriticAlgorithm):
     }
     policy: DACERPolicy
     actor: DiffusionActor
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
+    ent_coef_values = (
+        "'auto' (learned from α = 3, the official code's), " + TwinCriticAlgorithm.ent_coef_values[len("'auto', ") :]
+    )
 
     def __init__(
         self,
@@ -145,18 +136,10 @@ class DACER(TwinCriticAlgorithm):
         seed: int | None = None,
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
-        **removed_arguments: Any,
     ):
-        policy_kwargs = dict(policy_kwargs or {})
-        if "n_diffusion_steps" in removed_arguments:
-            n_diffusion_steps = removed_arguments.pop("n_diffusion_steps")
-            policy_kwargs = policy_kwarg_from_argument(policy_kwargs, "n_diffusion_steps", n_diffusion_steps, "DACER")
-        if "initial_log_alpha" in removed_arguments:
-            ent_coef = ent_coef_of_initial_log_alpha(removed_arguments.pop("initial_log_alpha"), ent_coef)
-        reject_unknown_arguments("DACER", removed_arguments)
         super().__init__(
             policy,
-            env,
+            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
             learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
@@ -176,12 +159,14 @@ class DACER(TwinCriticAlgorithm):
             verbose=verbose,
             seed=seed,
             device=device,
+            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
+            support_multi_env=True,
+            sde_support=False,
         )
 
-        # A copy (the caller's policy_kwargs dict stays reusable) in which the critic booleans of earlier versions are
-        # the critic choice; the number of steps written in it, so that a saved model records it
-        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DACER")
-        self.policy_kwargs.setdefault("n_diffusion_steps", 20)
+        # The number of steps written into a copy of policy_kwargs (the caller's dict stays reusable), so that a saved
+        # model records it
+        self.policy_kwargs = {"n_diffusion_steps": 20, **self.policy_kwargs}
         self.policy_delay = policy_delay
         self.ent_coef = ent_coef
         self.alpha_learning_rate = alpha_learning_rate
@@ -194,49 +179,9 @@ class DACER(TwinCriticAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
-    def _check_hyperparameters(self) -> None:
-        super()._check_hyperparameters()
-        self._initial_ent_coef()  # raises for an invalid ent_coef
-
     def _setup_model(self) -> None:
-        # A model saved by an earlier version: initial_log_alpha instead of ent_coef (its log α is in the saved policy)
-        if "initial_log_alpha" in self.__dict__:
-            self.ent_coef = f"auto_{math.exp(self.__dict__.pop('initial_log_alpha'))}"
-        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DACER")
         super()._setup_model()
-        self.target_entropy = resolve_target_entropy(self.target_entropy, -0.9 * float(get_action_dim(self.action_space)))
-        # log α lives in the actor (it sets the exploration noise of predict()); only this optimizer changes it
-        alpha = self._initial_ent_coef()
-        self.actor.log_alpha.fill_(math.log(alpha) if alpha > 0 else -math.inf)
-        self.ent_coef_optimizer: th.optim.Adam | None = None
-        if isinstance(self.ent_coef, str):
-            self.ent_coef_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.alpha_learning_rate)
-
-    def _initial_ent_coef(self) -> float:
-        """The initial ``α`` of ``ent_coef``; a ``ValueError`` naming the valid values for anything else."""
-        return initial_ent_coef(
-            self.ent_coef,
-            3.0,
-            "'auto' (learned from α = 3, the official code's), 'auto_<initial α > 0>' (e.g. 'auto_0.5'), "
-            "or a number >= 0 (fixed α; 0: no exploration noise).",
-        )
-
-    def set_parameters(
-        self,
-        load_path_or_dict: str | pathlib.Path | io.BufferedIOBase | dict[str, Any],
-        exact_match: bool = True,
-        device: th.device | str = "auto",
-    ) -> None:
-        """
-        See :meth:`BaseAlgorithm.set_parameters`. Models saved by earlier versions, whose ``α`` optimizer was named
-        ``alpha_optimizer``, load too.
-        """
-        params = load_path_or_dict
-        if not isinstance(params, dict):
-            _, params, _ = load_from_zip_file(params, device=device)
-        if "alpha_optimizer" in params:
-            params = {("ent_coef_optimizer" if name == "alpha_optimizer" else name): value for name, value in params.items()}
-        super().set_parameters(params, exact_match=exact_match, device=device)
+        self._setup_temperature(self.actor.log_alpha, -0.9 * float(get_action_dim(self.action_space)), self.alpha_learning_rate)
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
@@ -252,18 +197,18 @@ class DACER(TwinCriticAlgorithm):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
 
             # Critic update, J_Q: y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s') by reverse diffusion
-            critic_losses.append(self._update_critic(replay_data))
+            with th.no_grad():
+                next_actions = self.actor(replay_data.next_observations)
+            critic_loss = twin_critic_loss(self.critic, self.critic_target, replay_data, next_actions, self.gamma)
+            critic_losses.append(self._step(self.critic.optimizer, critic_loss, "critic loss", replay_data))
 
             # Actor update, every `policy_delay` critic updates: J_π = -E[min_j Q_j(s, π(s))],
             # backpropagated through all the denoising steps (the critics' parameters receive no gradient)
             if self._n_updates % self.policy_delay == 0:
                 with frozen(self._critic_parameters()):
-                    actor_loss = -self._min_q(replay_data.observations, self.actor(replay_data.observations)).mean()
-                actor_losses.append(self._checked(actor_loss, "actor loss", replay_data))
-
-                self.actor.optimizer.zero_grad()
-                actor_loss.backward()
-                self.actor.optimizer.step()
+                    q_values = self.critic.q_values(replay_data.observations, self.actor(replay_data.observations))
+                    actor_loss = -q_values.min(dim=0).values.mean()
+                actor_losses.append(self._step(self.actor.optimizer, actor_loss, "actor loss", replay_data))
 
                 # Target networks, with the actor as in the official code: Q̄ <- (1 - τ) Q̄ + τ Q
                 self._update_targets()
@@ -273,7 +218,9 @@ class DACER(TwinCriticAlgorithm):
             if self.ent_coef_optimizer is not None and (self._n_updates - 1) % self.alpha_update_interval == 0:
                 self.entropy = self._estimate_entropy(replay_data.observations)
                 # ∂J(α)/∂log α = H - H_target: the noise shrinks while the policy is more random than the target
-                self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, self.entropy - float(self.target_entropy))
+                ent_coef_loss = self.actor.log_alpha * (self.entropy - float(self.target_entropy))
+                self.ent_coef_optimizer.zero_grad()
+                ent_coef_loss.backward()
                 self.ent_coef_optimizer.step()
 
         self.logger.record("train/n_updates", self._n_updates)
@@ -292,26 +239,3 @@ class DACER(TwinCriticAlgorithm):
         features = self.actor.extract_features(observations, self.actor.features_extractor)
         actions = self.actor.act(features.repeat_interleave(self.entropy_samples, dim=0))
         return gaussian_mixture_entropy(actions.view(features.shape[0], self.entropy_samples, -1)).mean().item()
-
-    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts, saved_variables = super()._get_torch_save_params()
-        if self.ent_coef_optimizer is not None:
-            state_dicts = [*state_dicts, "ent_coef_optimizer"]
-        return state_dicts, saved_variables
-
-
-def ent_coef_of_initial_log_alpha(initial_log_alpha: float, ent_coef: str | float) -> str:
-    """
-    DACER's ``initial_log_alpha`` of earlier versions as ``ent_coef`` (a learned ``α`` starting at
-    ``exp(initial_log_alpha)``), with a ``FutureWarning``.
-
-    :raises ValueError: when ``ent_coef`` was given too (it is not ``"auto"``)
-    """
-    if ent_coef != "auto":
-        raise ValueError(
-            f"DACER: initial_log_alpha={initial_log_alpha!r} and ent_coef={ent_coef!r} both set the temperature: give "
-            "ent_coef alone (ent_coef='auto_<initial α>' learns α from that value)."
-        )
-    replacement = f"auto_{math.exp(initial_log_alpha):g}"
-    warn_renamed(f"DACER(initial_log_alpha={initial_log_alpha!r})", f"ent_coef={replacement!r}", stacklevel=4)
-    return f"auto_{math.exp(initial_log_alpha)}"

@@ -8,30 +8,21 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, Combine
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
+from sb3_dacerf.common.policies import EnsembleCritic, GenerativeActor, TwinCriticPolicy
 
 
-def diffusion_betas(schedule: str, n_steps: int) -> np.ndarray:
+def vp_betas(n_steps: int) -> np.ndarray:
     """
-    Noise variances ``β_1..β_T`` of the forward diffusion process.
+    Noise variances ``β_1..β_T`` of the forward diffusion process: the variance-preserving schedule of Diffusion-QL,
+    used by the official DACER code, ``β_t = 1 - exp(-b_min / T - (b_max - b_min) (2t - 1) / (2 T²))``,
+    ``b_min = 0.1``, ``b_max = 10``.
 
-    :param schedule: ``"vp"`` (the variance-preserving schedule of Diffusion-QL, used by the official DACER code:
-        ``β_t = 1 - exp(-b_min / T - (b_max - b_min) (2t - 1) / (2 T²))``, ``b_min = 0.1``, ``b_max = 10``),
-        ``"cosine"`` (Nichol & Dhariwal 2021) or ``"linear"`` (1e-4 to 0.02, DDPM's range)
     :param n_steps: Number of diffusion steps ``T``
     :return: The betas, shape ``(T,)``
     """
-    if schedule == "vp":
-        b_min, b_max = 0.1, 10.0
-        t = np.arange(1, n_steps + 1)
-        return 1 - np.exp(-b_min / n_steps - 0.5 * (b_max - b_min) * (2 * t - 1) / n_steps**2)
-    if schedule == "cosine":
-        s = 0.008
-        alphas_cumprod = np.cos((np.arange(n_steps + 1) / n_steps + s) / (1 + s) * np.pi / 2) ** 2
-        return np.clip(1 - alphas_cumprod[1:] / alphas_cumprod[:-1], 0.0, 0.999)
-    if schedule == "linear":
-        return np.linspace(1e-4, 2e-2, n_steps)
-    raise ValueError(f"Unknown beta_schedule {schedule!r}: use 'vp', 'cosine' or 'linear'")
+    b_min, b_max = 0.1, 10.0
+    t = np.arange(1, n_steps + 1)
+    return 1 - np.exp(-b_min / n_steps - 0.5 * (b_max - b_min) * (2 * t - 1) / n_steps**2)
 
 
 class DiffusionActor(GenerativeActor):
@@ -58,11 +49,6 @@ class DiffusionActor(GenerativeActor):
     ``activation_fn`` (also of the time embedding), ``normalize_images``, ``exploration_noise_scale``) and:
 
     :param n_diffusion_steps: Number of diffusion steps ``T`` (network calls per action)
-    :param beta_schedule: Noise schedule, ``"vp"`` (the official code's), ``"cosine"`` or ``"linear"``: see
-        :func:`diffusion_betas`. They differ most at the first reverse step: with 20 steps the cosine schedule
-        ends at ``ᾱ_T = 6e-6``, so that step computes ``x̂_0 = 406 x_T - 406 ε_θ`` (clipped to a bound almost
-        always) and keeps ``x_T`` with weight 0.03 in the posterior mean; under "vp" (``ᾱ_T = 6e-3``) the
-        figures are 12.5 and 0.78, under "linear" (``ᾱ_T = 0.82``) 1.1 and 0.90
     :param time_embedding_dim: Size of the sinusoidal time embedding
     """
 
@@ -70,17 +56,15 @@ class DiffusionActor(GenerativeActor):
         self,
         *args: Any,
         n_diffusion_steps: int = 20,
-        beta_schedule: str = "vp",
         time_embedding_dim: int = 16,
         **kwargs: Any,
     ):
         super().__init__(*args, **kwargs)
         self.n_diffusion_steps = n_diffusion_steps
-        self.beta_schedule = beta_schedule
         self.time_embedding_dim = time_embedding_dim
 
         # Reverse-process coefficients per step t, as Python floats: constants of the schedule, cheap to multiply by
-        betas = diffusion_betas(beta_schedule, n_diffusion_steps)
+        betas = vp_betas(n_diffusion_steps)
         alphas_cumprod = np.cumprod(1 - betas)
         alphas_cumprod_prev = np.append(1.0, alphas_cumprod[:-1])
         posterior_variance = betas * (1 - alphas_cumprod_prev) / (1 - alphas_cumprod)
@@ -114,7 +98,6 @@ class DiffusionActor(GenerativeActor):
         data = super()._get_constructor_parameters()
         data.update(
             n_diffusion_steps=self.n_diffusion_steps,
-            beta_schedule=self.beta_schedule,
             time_embedding_dim=self.time_embedding_dim,
         )
         return data
@@ -176,12 +159,13 @@ class DACERPolicy(TwinCriticPolicy):
     official code's networks by default (``net_arch=[256, 256, 256]``, ``activation_fn=nn.Mish``), and:
 
     :param n_diffusion_steps: Number of diffusion steps of the actor
-    :param beta_schedule: Noise schedule of the actor, ``"vp"`` (the official code's), ``"cosine"`` or ``"linear"``
     :param exploration_noise_scale: Standard deviation of the exploration noise at ``α = 1``
     """
 
     actor_class = DiffusionActor
     actor: DiffusionActor
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
 
     def __init__(
         self,
@@ -192,7 +176,6 @@ class DACERPolicy(TwinCriticPolicy):
         net_arch: list[int] | dict[str, list[int]] | None = None,
         activation_fn: type[nn.Module] = nn.Mish,
         n_diffusion_steps: int = 20,
-        beta_schedule: str = "vp",
         exploration_noise_scale: float = 0.15,
         **kwargs: Any,
     ):
@@ -204,7 +187,6 @@ class DACERPolicy(TwinCriticPolicy):
             activation_fn=activation_fn,
             actor_kwargs=dict(
                 n_diffusion_steps=n_diffusion_steps,
-                beta_schedule=beta_schedule,
                 exploration_noise_scale=exploration_noise_scale,
             ),
             **kwargs,
@@ -212,7 +194,7 @@ class DACERPolicy(TwinCriticPolicy):
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update({key: self.actor_kwargs[key] for key in ("n_diffusion_steps", "beta_schedule", "exploration_noise_scale")})
+        data.update({key: self.actor_kwargs[key] for key in ("n_diffusion_steps", "exploration_noise_scale")})
         return data
 
 

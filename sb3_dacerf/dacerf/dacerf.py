@@ -1,6 +1,5 @@
-import functools
 import math
-import warnings
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -10,15 +9,15 @@ from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
+from torch.nn import functional as F
 
-from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
-from sb3_dacerf.common.deprecation import critic_from_flags, policy_kwarg_from_argument, reject_unknown_arguments, warn_renamed
-from sb3_dacerf.common.flow_matching import FLOW_MATCHING_WEIGHTS, actor_loss_weights, flow_matching_loss
-from sb3_dacerf.common.langevin import MinQActionGradient, langevin_targets
-from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
-from sb3_dacerf.common.utils import frozen
-from sb3_dacerf.common.validation import HyperparameterRule, initial_ent_coef, integer_at_least, resolve_target_entropy
-from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, FlowActor, MlpPolicy, MultiInputPolicy
+from sb3_dacerf.common.policies import EnsembleCritic, twin_critic_loss
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
+from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least, made_env
+from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, FlowActor, MinQActionGradient, MlpPolicy, MultiInputPolicy
+
+#: The weightings of the two terms of the actor loss (``flow_matching_weights``), see :func:`actor_loss_weights`
+FLOW_MATCHING_WEIGHTS = ("gain", "paper")
 
 
 class DACERF(TwinCriticAlgorithm):
@@ -35,7 +34,7 @@ class DACERF(TwinCriticAlgorithm):
     advantage weighting ``λ_f ∝ g = ReLU(Q(s, a*) - Q(s, a_B))`` per sample, normalised by its batch mean; by default
     (``flow_matching_weights="gain"``) the improvement term is expressed in units of the batch's mean Langevin gain
     (``κ = mean(g)``), so that the balance of the two terms does not depend on the reward's scale or shift
-    (see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights` for the alternatives).
+    (see :func:`actor_loss_weights`).
     Every Q above is ``min(Q_1, Q_2)``, the same pessimistic estimate as in the Bellman target.
 
     Entropy regulator (this package's, after DACER's; the DACER-F paper describes none): a flow sampled in one Euler
@@ -67,9 +66,7 @@ class DACERF(TwinCriticAlgorithm):
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
         at a cost of more complexity.
     :param n_steps: Rewards summed in the critic target before it bootstraps: 1 (the default) is the paper's
-        one-step target; more uses n-step returns (SB3's ``NStepReplayBuffer``). ``n_steps=3`` closed the gap to SAC
-        on the sparse-reward DMC reacher-easy, and ended lower on walker-walk, cheetah-run and finger-spin (one seed,
-        benchmarks/learning.md, section 8)
+        one-step target; more uses n-step returns (SB3's ``NStepReplayBuffer``)
     :param policy_delay: The actor is updated once every ``policy_delay`` critic updates
     :param langevin_steps: Number of Langevin steps ``N_l`` that turn replay actions into targets ``a*``
     :param langevin_step_size: Langevin step size ``η_a``
@@ -80,9 +77,8 @@ class DACERF(TwinCriticAlgorithm):
         sit at the action bounds)
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
     :param flow_matching_weights: How the two terms of the actor loss are weighted: ``"gain"`` (scale- and
-        shift-free, the default), ``"paper"`` (``λ_f = flow_matching_coef · ReLU(Q(s, a*) - Q(s, a_B))``, the
-        paper's weight taken literally, and the paper preset's) or ``"q_scale"`` (``λ_f`` times ``mean|Q|``, the
-        weighting of version 0.1.0), see :func:`sb3_dacerf.common.flow_matching.actor_loss_weights`
+        shift-free, the default) or ``"paper"`` (``λ_f = flow_matching_coef · ReLU(Q(s, a*) - Q(s, a_B))``, the
+        paper's weight taken literally, and the paper preset's), see :func:`actor_loss_weights`
     :param ent_coef: Entropy regulator coefficient ``α``, the exploration noise being ``N(0, (0.15 α)²)``.
         ``"auto"`` learns it starting from ``α = 3`` (DACER's initial value), ``"auto_0.5"`` starting from 0.5;
         a float fixes it; ``0`` adds no noise (the paper's mechanism)
@@ -98,17 +94,13 @@ class DACERF(TwinCriticAlgorithm):
         ``"batch_renorm"`` for CrossQ's batch-renorm critics, without target networks (``tau`` is then unused); see
         :class:`~sb3_dacerf.dacerf.policies.DACERFPolicy` for the others
     :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
-        debug messages
+        debug messages and diagnostics: every 250 actor updates, ``train/imitation_to_improvement_grad`` (the ratio of
+        the gradient norms of the two terms of the actor loss, two extra backward passes) and, with a fixed ``α``, the
+        entropy estimate and ``train/action_spread``
     :param seed: Seed for the pseudo random generators
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
-    :param removed_arguments: Arguments of earlier versions: ``n_sampling_steps`` (now in ``policy_kwargs``) and
-        ``demonstration_targets`` (now in the ``replay_buffer_kwargs`` of a
-        :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer`) are converted with a ``FutureWarning``;
-        ``compile_langevin`` and ``entropy_estimate="fit"`` are dropped with one (the targets and the estimate are
-        unchanged); ``entropy_estimate="noise"`` raises a ``ValueError``, and so does anything else
-        (a ``TypeError``, as Python's)
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -119,7 +111,6 @@ class DACERF(TwinCriticAlgorithm):
     #: DACER-F's own hyper-parameters with their valid values, besides those of every algorithm of the package
     hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
         **TwinCriticAlgorithm.hyperparameter_rules,
-        "policy_delay": integer_at_least(1),
         "langevin_steps": integer_at_least(0, "an integer >= 0 (0 uses a_B as target)"),
         "langevin_step_size": HyperparameterRule(lambda value: value > 0, "> 0"),
         "langevin_temperature": HyperparameterRule(lambda value: value >= 0, ">= 0 (0 is noise-free gradient ascent)"),
@@ -128,6 +119,8 @@ class DACERF(TwinCriticAlgorithm):
     }
     policy: DACERFPolicy
     actor: FlowActor
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
 
     def __init__(
         self,
@@ -162,14 +155,10 @@ class DACERF(TwinCriticAlgorithm):
         seed: int | None = None,
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
-        **removed_arguments: Any,
     ):
-        policy_kwargs, replay_buffer_kwargs = convert_removed_arguments(
-            removed_arguments, policy_kwargs or {}, replay_buffer_class, replay_buffer_kwargs or {}
-        )
         super().__init__(
             policy,
-            env,
+            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
             learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
@@ -189,6 +178,9 @@ class DACERF(TwinCriticAlgorithm):
             verbose=verbose,
             seed=seed,
             device=device,
+            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
+            support_multi_env=True,
+            sde_support=False,
         )
 
         # DACER-F's own hyper-parameters (Algorithm 2)
@@ -202,30 +194,16 @@ class DACERF(TwinCriticAlgorithm):
         # Entropy regulator
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
-        self.ent_coef_optimizer: th.optim.Adam | None = None
         self._n_actor_updates = 0
-        # The last entropy estimate and flow spread (measured at every actor update only when α is learned)
-        self._last_entropy_and_spread = (math.nan, math.nan)
-        # A copy (the caller's policy_kwargs dict stays reusable, e.g. for a SAC of the same size) in which the critic
-        # booleans of earlier versions are the critic choice
-        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DACERF")
-        # One Euler step, and LayerNorm critics (benchmarks/learning.md, "Critic options"), unless policy_kwargs say
-        # otherwise. Written into policy_kwargs, so a saved model records them: files saved before LayerNorm critics
-        # became the default (no such key) load with SB3's MLP critics, which they hold.
-        self.policy_kwargs.setdefault("n_sampling_steps", 1)
-        self.policy_kwargs.setdefault("critic", "layer_norm")
+        # One Euler step and LayerNorm critics unless policy_kwargs say otherwise, written into a copy of
+        # policy_kwargs (the caller's dict stays reusable), so that a saved model records them
+        self.policy_kwargs = {"n_sampling_steps": 1, "critic": "layer_norm", **self.policy_kwargs}
 
         if _init_setup_model:
             self._setup_model()
 
     def _check_hyperparameters(self) -> None:
         super()._check_hyperparameters()
-        if self.flow_matching_weights in REMOVED_FLOW_MATCHING_WEIGHTS:
-            raise ValueError(
-                f"flow_matching_weights={self.flow_matching_weights!r} was removed (it lost to the default in "
-                "benchmarks/learning.md): use 'gain' (the default), 'paper' or 'q_scale'. To load a model saved with it, "
-                "pass custom_objects=dict(flow_matching_weights='gain') to load()."
-            )
         if self.flow_matching_weights not in FLOW_MATCHING_WEIGHTS:
             raise ValueError(
                 f"Invalid flow_matching_weights={self.flow_matching_weights!r}: "
@@ -233,36 +211,8 @@ class DACERF(TwinCriticAlgorithm):
             )
 
     def _setup_model(self) -> None:
-        # What a model saved by an earlier version holds: its data become the attributes before this runs
-        saved: dict[str, Any] = {
-            name: self.__dict__.pop(name)
-            for name in ("compile_langevin", "entropy_estimate", "demonstration_targets")
-            if name in self.__dict__
-        }
-        if saved:
-            self.policy_kwargs, self.replay_buffer_kwargs = convert_removed_arguments(
-                saved, self.policy_kwargs, self.replay_buffer_class, self.replay_buffer_kwargs, saved_model=True
-            )
-        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DACERF")
         super()._setup_model()
-        self.target_entropy = resolve_target_entropy(self.target_entropy, -float(get_action_dim(self.action_space)))
-        initial_ent_coef = self._initial_ent_coef()
-        self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
-        if self._learns_ent_coef():
-            self.actor.log_alpha.requires_grad_(False)
-            self.ent_coef_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.lr_schedule(1))
-
-    def _learns_ent_coef(self) -> bool:
-        return isinstance(self.ent_coef, str)
-
-    def _initial_ent_coef(self) -> float:
-        """The initial ``α`` of ``ent_coef``; a ``ValueError`` naming the valid values for anything else."""
-        return initial_ent_coef(
-            self.ent_coef,
-            3.0,
-            "'auto' (learned from α = 3), 'auto_<initial α > 0>' (e.g. 'auto_0.5'), a number >= 0 (fixed α), "
-            "or 0 for no exploration noise (the paper's mechanism).",
-        )
+        self._setup_temperature(self.actor.log_alpha, -float(get_action_dim(self.action_space)), self.lr_schedule(1))
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
@@ -283,7 +233,10 @@ class DACERF(TwinCriticAlgorithm):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
 
             # Critic update: minimise J_Q(φ_i), target y = r + γ (1 - done) min_j Q̄_j(s', a'),  a' ~ π(·|s')
-            critic_losses.append(self._update_critic(replay_data))
+            with th.no_grad():
+                next_actions = self.actor(replay_data.next_observations)
+            critic_loss = twin_critic_loss(self.critic, self.critic_target, replay_data, next_actions, self.gamma)
+            critic_losses.append(self._step(self.critic.optimizer, critic_loss, "critic loss", replay_data))
 
             # Actor update: minimise J_F(θ) (and step α), every `policy_delay` critic updates
             if self._n_updates % self.policy_delay == 0:
@@ -301,25 +254,19 @@ class DACERF(TwinCriticAlgorithm):
             if finite:
                 self.logger.record(f"train/{key}", np.mean(finite))
 
-    def langevin_targets(self, observations: th.Tensor, actions: th.Tensor, normalize_gradient: bool | None = None) -> th.Tensor:
+    def langevin_targets(self, observations: th.Tensor, actions: th.Tensor) -> th.Tensor:
         """
-        The Langevin targets ``a*`` (Algorithm 1) that the actor update would build from ``actions`` at
-        ``observations``: this model's ``langevin_steps``, ``langevin_step_size`` and ``langevin_temperature``, on
-        ``∇_a min_j Q_j(s, a)`` of its twin critics (whose parameters get no gradient).
+        The Langevin targets ``a*`` (Algorithm 1) that the actor update builds from ``actions`` at ``observations``,
+        with this model's ``langevin_*`` settings, on ``∇_a min_j Q_j(s, a)`` of its critics (which get no gradient).
 
         :param observations: A batch of (preprocessed) observations
         :param actions: The starting actions, in the policy's [-1, 1] space, one per observation
-        :param normalize_gradient: Overrides the model's ``langevin_normalize_gradient`` (``None``: keep it)
         :return: ``a*``, detached, the shape of ``actions``
         """
-        return self._langevin(observations, actions, normalize_gradient)[0]
+        return self._langevin(observations, actions)[0]
 
-    def _langevin(
-        self, observations: th.Tensor, actions: th.Tensor, normalize_gradient: bool | None = None
-    ) -> tuple[th.Tensor, MinQActionGradient]:
-        """:meth:`langevin_targets`, and the ``∇_a min Q`` object it used (its features and ``start_min_q``)."""
-        if normalize_gradient is None:
-            normalize_gradient = self.langevin_normalize_gradient
+    def _langevin(self, observations: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, MinQActionGradient]:
+        """:meth:`langevin_targets`, and the ``∇_a min Q`` it used (its features and ``start_min_q``)."""
         with frozen(self._critic_parameters()):
             gradient = MinQActionGradient(self.critic, observations)
             targets = langevin_targets(
@@ -328,7 +275,7 @@ class DACERF(TwinCriticAlgorithm):
                 n_steps=self.langevin_steps,
                 step_size=self.langevin_step_size,
                 temperature=self.langevin_temperature,
-                normalize_gradient=normalize_gradient,
+                normalize_gradient=self.langevin_normalize_gradient,
             )
         return targets, gradient
 
@@ -361,10 +308,10 @@ class DACERF(TwinCriticAlgorithm):
 
             # Flow-matching (imitation) term ||v_θ(s, a_t, t) - (a* - a_0)||² towards a*, weighted by λ_f ∝ the gain
             kappa, lambda_f = actor_loss_weights(
-                self.flow_matching_weights, q_values_pi, q_values_star, q_values_buffer, self.flow_matching_coef
+                self.flow_matching_weights, q_values_star, q_values_buffer, self.flow_matching_coef
             )
             targets, lambda_f = self.imitation_targets(replay_data, actions_star, lambda_f)
-            flow_error = flow_matching_loss(functools.partial(self.actor.velocity, features), targets)
+            flow_error = flow_matching_loss(lambda a_t, t: self.actor.velocity(features, a_t, t), targets)
         return dict(
             improvement_term=(-q_values_pi / kappa).mean(),
             imitation_term=(lambda_f * flow_error).mean(),
@@ -393,7 +340,42 @@ class DACERF(TwinCriticAlgorithm):
         choose = getattr(replay_data, "imitation_targets", None)
         return (targets, weights) if choose is None else choose(targets, weights)
 
-    def actor_gradient_ratio(self, terms: dict[str, th.Tensor]) -> float:
+    def _update_actor(self, replay_data: Any) -> dict[str, float]:
+        """One gradient step on the actor loss ``J_F`` (and on ``α`` when it is learned); returns the values to log."""
+        terms = self.actor_loss_terms(replay_data)
+        actor_loss = terms["improvement_term"] + terms["imitation_term"]
+        logs = {"actor_loss": self._checked(actor_loss, "actor loss", replay_data)}
+        self._n_actor_updates += 1
+        diagnostic = self.verbose >= 2 and self._n_actor_updates % 250 == 1
+        if diagnostic:
+            logs["imitation_to_improvement_grad"] = self._actor_gradient_ratio(terms)
+
+        self.actor.optimizer.zero_grad()
+        actor_loss.backward()
+        self.actor.optimizer.step()
+
+        logs.update(
+            flow_matching_loss=terms["flow_error"].mean().item(),
+            langevin_gain=(terms["q_values_star"] - terms["q_values_buffer"]).mean().item(),
+            lambda_f=terms["lambda_f"].mean().item(),
+            improvement_scale=terms["kappa"].item(),
+            improvement_term=terms["improvement_term"].item(),
+            imitation_term=terms["imitation_term"].item(),
+        )
+        # Entropy regulator: estimate H of the noisy policy, then step log α on J(α) = log α (H - H_target), whose
+        # gradient shrinks the noise while the policy is more random than the target. With α fixed the estimate and
+        # the flow's spread are diagnostics
+        if self.ent_coef_optimizer is not None or diagnostic:
+            logs["entropy"], logs["action_spread"] = self._entropy_and_spread(terms["features"])
+        if self.ent_coef_optimizer is not None:
+            ent_coef_loss = self.actor.log_alpha * (logs["entropy"] - float(self.target_entropy))
+            self.ent_coef_optimizer.zero_grad()
+            ent_coef_loss.backward()
+            self.ent_coef_optimizer.step()
+            logs["ent_coef_loss"] = self.actor.log_alpha.item() * (logs["entropy"] - float(self.target_entropy))
+        return logs
+
+    def _actor_gradient_ratio(self, terms: dict[str, th.Tensor]) -> float:
         """
         Balance of the actor loss: the norm of the imitation term's gradient on the actor's parameters over that of
         the improvement term's (1: equal pull; logged as ``train/imitation_to_improvement_grad``).
@@ -406,46 +388,6 @@ class DACERF(TwinCriticAlgorithm):
             gradients = th.autograd.grad(terms[name], parameters, retain_graph=True, allow_unused=True)
             norms.append(math.sqrt(sum(float(g.pow(2).sum()) for g in gradients if g is not None)))
         return norms[0] / max(norms[1], 1e-12)
-
-    def _update_actor(self, replay_data: Any) -> dict[str, float]:
-        """One gradient step on the actor loss ``J_F`` (and on ``α`` when it is learned); returns the values to log."""
-        terms = self.actor_loss_terms(replay_data)
-        actor_loss = terms["improvement_term"] + terms["imitation_term"]
-        logs = {"actor_loss": self._checked(actor_loss, "actor loss", replay_data)}
-        self._n_actor_updates += 1
-        diagnostic = self._n_actor_updates % 250 == 1
-        if diagnostic:  # the balance diagnostic costs two backward passes: not at every update
-            logs["imitation_to_improvement_grad"] = self.actor_gradient_ratio(terms)
-
-        self.actor.optimizer.zero_grad()
-        actor_loss.backward()
-        self.actor.optimizer.step()
-
-        # Entropy regulator: estimate H of the noisy policy, then step log α on J(α) = log α (H - H_target). With α
-        # fixed the estimate and the flow's spread are only logged: measured with the balance diagnostic, not at
-        # every update
-        learns_ent_coef = self.ent_coef_optimizer is not None
-        entropy, spread = self._last_entropy_and_spread
-        if learns_ent_coef or diagnostic:
-            entropy, spread = self._entropy_and_spread(terms["features"])
-            self._last_entropy_and_spread = (entropy, spread)
-        if self.ent_coef_optimizer is not None:
-            ent_coef_gradient = entropy - float(self.target_entropy)  # a float since _setup_model()
-            self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, ent_coef_gradient)
-            self.ent_coef_optimizer.step()
-            logs["ent_coef_loss"] = self.actor.log_alpha.item() * ent_coef_gradient
-
-        logs.update(
-            flow_matching_loss=terms["flow_error"].mean().item(),
-            langevin_gain=(terms["q_values_star"] - terms["q_values_buffer"]).mean().item(),
-            lambda_f=terms["lambda_f"].mean().item(),
-            improvement_scale=terms["kappa"].item(),
-            improvement_term=terms["improvement_term"].item(),
-            imitation_term=terms["imitation_term"].item(),
-            entropy=entropy,
-            action_spread=spread,
-        )
-        return logs
 
     @th.no_grad()
     def _entropy_and_spread(self, features: th.Tensor, n_states: int = 32, n_samples: int = 8) -> tuple[float, float]:
@@ -465,12 +407,6 @@ class DACERF(TwinCriticAlgorithm):
             return -math.inf, action_spread
         entropy = 0.5 * (math.log(2 * math.pi * math.e) + variance.log()).sum(dim=1).mean().item()
         return entropy, action_spread
-
-    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts, saved_variables = super()._get_torch_save_params()
-        if self.ent_coef_optimizer is not None:
-            state_dicts = [*state_dicts, "ent_coef_optimizer"]
-        return state_dicts, saved_variables
 
 
 #: The values the paper gives (its Table "Training hyper-parameters" and ``N_l = 20``), for
@@ -500,89 +436,93 @@ PAPER_HYPERPARAMETERS: dict[str, Any] = dict(
 )
 
 
-#: Values of ``flow_matching_weights`` that earlier versions took: ``"td3bc"`` and ``"flowrl"``
-REMOVED_FLOW_MATCHING_WEIGHTS = ("td3bc", "flowrl")
-
-
-def convert_removed_arguments(
-    arguments: dict[str, Any],
-    policy_kwargs: dict[str, Any],
-    replay_buffer_class: type[ReplayBuffer] | None,
-    replay_buffer_kwargs: dict[str, Any],
-    saved_model: bool = False,
-) -> tuple[dict[str, Any], dict[str, Any]]:
+def langevin_targets(
+    action_gradient: Callable[[th.Tensor], th.Tensor],
+    actions: th.Tensor,
+    n_steps: int,
+    step_size: float,
+    temperature: float,
+    normalize_gradient: bool = False,
+) -> th.Tensor:
     """
-    The arguments of earlier versions of :class:`DACERF`, given to its constructor (or, ``saved_model=True``, read
-    from a saved model), moved to where they now belong.
+    Algorithm 1 of the DACER-F paper (Langevin Optimize Action): move replay actions ``a_B`` towards samples of
+    ``p(a|s) ∝ exp(Q(s, a) / α)`` with ``N_l`` steps ``a <- a + η ∇_a Q(s, a) + sqrt(2 η α) ξ``, ``ξ ~ N(0, I)``,
+    each clipped to the action bounds [-1, 1].
 
-    :param arguments: The removed arguments by name
-    :param policy_kwargs: The model's ``policy_kwargs`` (not modified)
-    :param replay_buffer_class: The model's replay buffer class
-    :param replay_buffer_kwargs: The model's ``replay_buffer_kwargs`` (not modified)
-    :param saved_model: Whether the arguments come from a saved model, whose values at their defaults are dropped
-        without a warning (they change nothing)
-    :return: ``policy_kwargs`` and ``replay_buffer_kwargs``, with what moved there
-    :raises ValueError: for a value whose behaviour no longer exists
-    :raises TypeError: for an argument DACERF never had
+    :param action_gradient: ``∇_a Q(s, a)`` of a batch of actions ``(batch, action_dim)``, the states bound inside it
+        (:class:`~sb3_dacerf.dacerf.policies.MinQActionGradient` for DACERF's critics)
+    :param actions: The starting actions ``a_B``, in [-1, 1]
+    :param n_steps: ``N_l``
+    :param step_size: ``η``
+    :param temperature: ``α``
+    :param normalize_gradient: Divide ``∇_a Q`` by ``max(1, mean |∇_a Q|)`` over the batch at every step, so that a
+        step moves a coordinate by ``η`` on average at most, whatever the reward's scale
+    :return: The optimised actions ``a*``, detached
     """
-    arguments = dict(arguments)
-    policy_kwargs, replay_buffer_kwargs = dict(policy_kwargs), dict(replay_buffer_kwargs)
-    if "n_sampling_steps" in arguments:
-        policy_kwargs = policy_kwarg_from_argument(
-            policy_kwargs, "n_sampling_steps", arguments.pop("n_sampling_steps"), "DACERF", stacklevel=5
-        )
-    if "compile_langevin" in arguments:
-        compile_langevin = arguments.pop("compile_langevin")
-        if compile_langevin or not saved_model:
-            warnings.warn(
-                f"DACERF(compile_langevin={compile_langevin!r}) was removed and is ignored: the Langevin loop runs without "
-                "torch.compile (same targets; compiled, a CPU training step took 0.84-1.05x the time, benchmarks/README.md).",
-                FutureWarning,
-                stacklevel=3,
-            )
-    if "entropy_estimate" in arguments:
-        entropy_estimate = arguments.pop("entropy_estimate")
-        if entropy_estimate != "fit":
-            hint = (
-                " To load a model saved with it, pass custom_objects=dict(entropy_estimate='fit') to load()."
-                if saved_model
-                else ""
-            )
-            raise ValueError(
-                f"DACERF(entropy_estimate={entropy_estimate!r}) was removed: α is learned from the entropy of a Gaussian "
-                f"fitted to the flow's samples plus the noise (the former 'fit', the only estimate now).{hint}"
-            )
-        if not saved_model:
-            warnings.warn(
-                "DACERF(entropy_estimate='fit') was removed: it is the only estimate now; remove the argument.",
-                FutureWarning,
-                stacklevel=3,
-            )
-    if "demonstration_targets" in arguments:
-        demonstration_targets = arguments.pop("demonstration_targets")
-        is_demonstration_buffer = isinstance(replay_buffer_class, type) and issubclass(
-            replay_buffer_class, DemonstrationReplayBuffer
-        )
-        if is_demonstration_buffer:
-            replay_buffer_kwargs.setdefault("demonstration_targets", demonstration_targets)
-            if replay_buffer_kwargs["demonstration_targets"] != demonstration_targets:
-                raise ValueError(
-                    f"DACERF: demonstration_targets={demonstration_targets!r} and replay_buffer_kwargs=dict("
-                    f"demonstration_targets={replay_buffer_kwargs['demonstration_targets']!r}) disagree: give it once, in "
-                    "replay_buffer_kwargs."
-                )
-        elif demonstration_targets != "langevin":
-            raise ValueError(
-                f"demonstration_targets={demonstration_targets!r} fits the demonstrations of a DemonstrationReplayBuffer, "
-                "and is now its argument: pass replay_buffer_class=DemonstrationReplayBuffer (sb3_dacerf.common.buffers), "
-                f"replay_buffer_kwargs=dict(demonstration_targets={demonstration_targets!r})."
-            )
-        if not saved_model:
-            warn_renamed(
-                "DACERF(demonstration_targets=...)",
-                "replay_buffer_class=DemonstrationReplayBuffer, "
-                f"replay_buffer_kwargs=dict(demonstration_targets={demonstration_targets!r})",
-                stacklevel=4,
-            )
-    reject_unknown_arguments("DACERF", arguments)
-    return policy_kwargs, replay_buffer_kwargs
+    # ξ of every step, drawn at once and scaled by sqrt(2 η α)
+    noise = th.randn((n_steps, *actions.shape), device=actions.device, dtype=actions.dtype).mul_(
+        (2.0 * step_size * temperature) ** 0.5
+    )
+    action = actions.detach()  # a <- a_B
+    for step in range(n_steps):
+        gradient = action_gradient(action)  # ∇_a Q(s, a)
+        if normalize_gradient:
+            gradient = gradient / gradient.abs().mean().clamp(min=1.0)
+        action = (action + step_size * gradient + noise[step]).clamp(-1.0, 1.0)  # a <- a + η ∇_a Q + sqrt(2ηα) ξ
+    return action.detach()
+
+
+def flow_matching_loss(
+    velocity: Callable[[th.Tensor, th.Tensor], th.Tensor],
+    targets: th.Tensor,
+    noise: th.Tensor | None = None,
+    time: th.Tensor | None = None,
+) -> th.Tensor:
+    """
+    Conditional flow matching towards ``targets`` on the straight path ``a_t = (1 - t) a_0 + t a*``, whose
+    velocity is ``a* - a_0``: the per-sample error ``||v(a_t, t) - (a* - a_0)||²``.
+
+    :param velocity: Maps points ``a_t`` ``(batch, action_dim)`` and times ``t`` ``(batch, 1)`` to the predicted
+        velocity ``v(s, a_t, t)``, the states bound inside it
+    :param targets: The target actions ``a*``, ``(batch, action_dim)``
+    :param noise: The path's starting points ``a_0``; ``N(0, I)`` draws by default
+    :param time: The times ``t``; ``U[0, 1]`` draws by default
+    :return: The squared error of each sample, ``(batch, 1)``
+    """
+    noise = th.randn_like(targets) if noise is None else noise
+    time = th.rand((targets.shape[0], 1), device=targets.device, dtype=targets.dtype) if time is None else time
+    actions_t = (1 - time) * noise + time * targets
+    return (velocity(actions_t, time) - (targets - noise)).pow(2).sum(dim=1, keepdim=True)
+
+
+def actor_loss_weights(
+    method: str, q_values_star: th.Tensor, q_values_buffer: th.Tensor, coef: float = 1.0
+) -> tuple[th.Tensor, th.Tensor]:
+    """
+    Weights of the actor loss ``J_F = mean(-Q(s, π(s)) / κ + λ_f ||v - (a* - a_0)||²)``: the scale ``κ`` of the
+    improvement term and the per-sample weight ``λ_f`` of the flow-matching (imitation) term. Both keep the paper's
+    ``λ_f ∝ g = ReLU(Q(s, a*) - Q(s, a_B))``, the Langevin gain of each sample:
+
+    - ``"gain"``: ``κ = mean(g)`` and ``λ_f = coef · g / mean(g)``. Both terms are then free of the reward's scale
+      and shift (``-Q / κ`` has the gradient of ``Q`` in units of the batch's Langevin gain). ``κ`` is floored at
+      ``1e-3`` of the batch's mean absolute deviation of ``Q(s, a_B)`` for batches where Langevin dynamics found no
+      gain.
+    - ``"paper"``: ``κ = 1`` and ``λ_f = coef · g``, the paper's weight taken literally (the proportionality constant,
+      which the paper does not give, is ``coef``).
+
+    :param method: One of :data:`FLOW_MATCHING_WEIGHTS`
+    :param q_values_star: ``Q(s, a*)`` of the Langevin targets, ``(batch, 1)``
+    :param q_values_buffer: ``Q(s, a_B)`` of the replay actions the targets started from, ``(batch, 1)``
+    :param coef: ``flow_matching_coef``, the weight of the imitation term
+    :return: ``κ`` (a scalar tensor) and ``λ_f`` ``(batch, 1)``, both detached
+    """
+    with th.no_grad():
+        gain = F.relu(q_values_star - q_values_buffer)
+        mean_gain = gain.mean()
+        if method == "gain":
+            q_spread = (q_values_buffer - q_values_buffer.mean()).abs().mean()
+            kappa = th.maximum(mean_gain, 1e-3 * q_spread).clamp_min(1e-8)
+            return kappa, coef * (gain / mean_gain.clamp_min(1e-12))
+        if method == "paper":
+            return th.ones_like(mean_gain), coef * gain
+    raise ValueError(f"Unknown flow_matching_weights={method!r}: it must be one of {', '.join(FLOW_MATCHING_WEIGHTS)}.")

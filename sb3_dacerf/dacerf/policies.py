@@ -1,3 +1,4 @@
+from collections.abc import Callable
 from typing import Any
 
 import torch as th
@@ -8,10 +9,17 @@ from stable_baselines3.common.torch_layers import (
     NatureCNN,
     create_mlp,
 )
-from stable_baselines3.common.type_aliases import Schedule
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
+from sb3_dacerf.common.policies import (
+    EnsembleBatchRenorm,
+    EnsembleCritic,
+    EnsembleLayerNorm,
+    EnsembleLinear,
+    GenerativeActor,
+    TwinCriticPolicy,
+)
 
 
 class FlowActor(GenerativeActor):
@@ -38,7 +46,8 @@ class FlowActor(GenerativeActor):
         super().__init__(*args, **kwargs)
         self.n_sampling_steps = n_sampling_steps
         # No exploration noise (α = 0) until the algorithm sets log α
-        self.log_alpha.fill_(float("-inf"))
+        with th.no_grad():
+            self.log_alpha.fill_(float("-inf"))
         # Input: state features, the point a_t on the path, and the time t
         self.network = nn.Sequential(
             *create_mlp(self.features_dim + self.action_dim + 1, self.action_dim, self.net_arch, self.activation_fn)
@@ -84,8 +93,7 @@ class FlowActor(GenerativeActor):
         """
         Bring the flow's end point into [-1, 1]: a hard clamp, whose gradient is zero in every saturated
         coordinate (the actor's ``-Q`` term does not move a coordinate the flow has pushed past a bound; the
-        flow-matching term, which trains the velocity directly, still does). Measured against a straight-through
-        clamp in ``benchmarks/learning.md`` ("The clamp").
+        flow-matching term, which trains the velocity directly, still does).
 
         :param actions: End points of the flow ``(batch, action_dim)``
         :return: Actions in [-1, 1]
@@ -105,6 +113,8 @@ class DACERFPolicy(TwinCriticPolicy):
 
     actor_class = FlowActor
     actor: FlowActor
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
 
     def __init__(
         self,
@@ -115,6 +125,12 @@ class DACERFPolicy(TwinCriticPolicy):
         n_sampling_steps: int = 1,
         **kwargs: Any,
     ):
+        activation_fn = kwargs.get("activation_fn", nn.ReLU)
+        if activation_fn not in ACTIVATION_BACKWARDS:
+            raise ValueError(
+                f"DACERF's critics take activation_fn={', '.join(cls.__name__ for cls in ACTIVATION_BACKWARDS)} (the "
+                f"Langevin gradient is written out for them), not {activation_fn!r}."
+            )
         actor_kwargs = dict(n_sampling_steps=n_sampling_steps)
         super().__init__(observation_space, action_space, lr_schedule, actor_kwargs=actor_kwargs, **kwargs)
 
@@ -122,6 +138,188 @@ class DACERFPolicy(TwinCriticPolicy):
         data = super()._get_constructor_parameters()
         data.update(n_sampling_steps=self.actor_kwargs["n_sampling_steps"])
         return data
+
+
+# Backward pass of each supported activation: dQ/dz from dQ/dh, h = activation(z) (the kernels autograd uses)
+ACTIVATION_BACKWARDS: dict[type[nn.Module], Callable[[nn.Module, th.Tensor, th.Tensor], th.Tensor]] = {
+    nn.ReLU: lambda module, grad, z: th.ops.aten.threshold_backward(grad, z, 0.0),
+    nn.LeakyReLU: lambda module, grad, z: th.ops.aten.leaky_relu_backward(grad, z, module.negative_slope, False),
+    nn.Tanh: lambda module, grad, z: th.ops.aten.tanh_backward(grad, th.tanh(z)),
+    nn.ELU: lambda module, grad, z: th.ops.aten.elu_backward(grad, module.alpha, 1.0, 1.0, False, z),
+    nn.SiLU: lambda module, grad, z: th.ops.aten.silu_backward(grad, z),
+    nn.Mish: lambda module, grad, z: th.ops.aten.mish_backward(grad, z),
+    nn.GELU: lambda module, grad, z: th.ops.aten.gelu_backward(grad, z, approximate=module.approximate),
+}
+
+
+# A hidden block of a written-out critic: (weight (n, in, out), bias (n, out), LayerNorm or None, activation)
+_Block = tuple[th.Tensor, th.Tensor, EnsembleLayerNorm | None, nn.Module]
+
+
+def _layer_norm_forward(norm: EnsembleLayerNorm, z: th.Tensor) -> tuple[th.Tensor, tuple[th.Tensor, th.Tensor, th.Tensor]]:
+    """The ensemble ``LayerNorm`` with autograd's own kernel, also returning what its backward needs (input, mean, 1/σ)."""
+    normalised, mean, inv_std = th.native_layer_norm(z, (norm.num_features,), None, None, norm.eps)
+    return th.addcmul(norm.bias.unsqueeze(1), normalised, norm.weight.unsqueeze(1)), (z, mean, inv_std)
+
+
+def _layer_norm_backward(
+    norm: EnsembleLayerNorm, grad: th.Tensor, cache: tuple[th.Tensor, th.Tensor, th.Tensor], member: int, rows: th.Tensor
+) -> th.Tensor:
+    """dQ/dz from dQ/dy of ``y = LayerNorm(z)`` for one ensemble member at the samples ``rows``, with autograd's own
+    kernel."""
+    z, mean, inv_std = (tensor[member].index_select(0, rows) for tensor in cache)
+    return th.ops.aten.native_layer_norm_backward(
+        grad * norm.weight[member], z, (norm.num_features,), mean, inv_std, None, None, [True, False, False]
+    )[0]
+
+
+class MinQActionGradient:
+    """
+    ``∇_a min_j Q_j(s, a)`` of ensemble critics (:class:`~sb3_dacerf.common.policies.EnsembleCritic`) at fixed
+    states ``s``, the gradient of DACER-F's Langevin steps.
+
+    Built once per batch of states: the features, and every critic's first-layer contribution of the state, are
+    computed once instead of at every Langevin step. The gradient is written out without building an autograd
+    graph: the forward pass runs all the critics in one batched product per layer, and the chain rule then goes back
+    through the weights of the critic with the smallest Q only, per sample (as autograd routes the gradient through
+    ``min``), so each backward product covers the batch once. It covers the critics this package builds: ensemble
+    ``Linear`` layers with the activations of :data:`ACTIVATION_BACKWARDS` between them, optionally a ``LayerNorm``
+    after each hidden layer (:class:`~sb3_dacerf.common.policies.LayerNormCritic`) or a batch renormalisation in
+    running-statistics mode before each layer (:class:`~sb3_dacerf.common.policies.BatchRenormCritic`, folded into
+    that layer).
+
+    The first call also keeps ``min_j Q_j`` at the actions it was given in :attr:`start_min_q`: the Langevin loop's
+    first call is at its starting actions, whose Q-values are then known without another pass.
+
+    :param critic: The critics ``Q_j(s, a)``
+    :param observations: The fixed states ``s``, a batch
+    """
+
+    def __init__(self, critic: EnsembleCritic, observations: PyTorchObs):
+        self.critic = critic
+        #: ``min_j Q_j(s, a)`` at the actions of the first call, ``(batch, 1)``, detached (``None`` before it)
+        self.start_min_q: th.Tensor | None = None
+        with th.no_grad():
+            self.features = critic.extract_features(observations, critic.features_extractor)
+        self.blocks, (self.output_weight, self.output_bias) = written_out_layers(critic)
+        first_weight, first_bias = self.blocks[0][0], self.blocks[0][1]
+        n_members, n_features = first_weight.shape[0], self.features.shape[1]
+        with th.no_grad():
+            # W [s; a] + b = (W_s s + b) + W_a a: the state part is the same at every Langevin step
+            self.state_part = th.baddbmm(
+                first_bias.unsqueeze(1), self.features.expand(n_members, *self.features.shape), first_weight[:, :n_features]
+            )
+        self.action_weight = first_weight[:, n_features:]
+
+    def __call__(self, actions: th.Tensor) -> th.Tensor:
+        with th.no_grad():
+            q_values, saved = self._forward(actions)
+            # Per sample, only the critic with the smallest Q is differentiated (the first one on ties, as autograd
+            # routes the gradient through th.min): the backward pass runs once per critic on its own samples, so
+            # each layer's product covers the batch once instead of once per critic
+            min_q, smallest = q_values.min(dim=0)
+            self._keep_start(min_q)
+            smallest = smallest.squeeze(1)
+            gradient = th.empty_like(actions)
+            for member in range(q_values.shape[0]):
+                rows = (smallest == member).nonzero().squeeze(1)
+                if rows.numel() > 0:
+                    gradient.index_copy_(0, rows, self._member_backward(member, rows, saved))
+            return gradient
+
+    def _member_backward(self, member: int, rows: th.Tensor, saved: list[tuple[th.Tensor, Any]]) -> th.Tensor:
+        """``∇_a Q_member`` at the samples ``rows``, from the forward pass's ``saved`` pre-activations."""
+        gradient = self.output_weight[member].t().expand(rows.numel(), -1)
+        for index in range(len(self.blocks) - 1, -1, -1):
+            weight, _, norm, activation = self.blocks[index]
+            z, norm_cache = saved[index]
+            gradient = ACTIVATION_BACKWARDS[type(activation)](activation, gradient, z[member].index_select(0, rows))
+            if norm is not None and norm_cache is not None:  # both or neither
+                gradient = _layer_norm_backward(norm, gradient, norm_cache, member, rows)
+            gradient = gradient @ (self.action_weight if index == 0 else weight)[member].t()
+        return gradient
+
+    def min_q(self, actions: th.Tensor) -> th.Tensor:
+        """``min_j Q_j(s, a)`` at the fixed states, ``(batch, 1)``, without gradient (one forward pass)."""
+        with th.no_grad():
+            return self._forward(actions)[0].min(dim=0).values
+
+    def _keep_start(self, min_q: th.Tensor) -> None:
+        if self.start_min_q is None:
+            self.start_min_q = min_q
+
+    def _forward(self, actions: th.Tensor) -> tuple[th.Tensor, list[tuple[th.Tensor, Any]]]:
+        """Every critic's Q ``(n_critics, batch, 1)`` through the hidden blocks, and what the backward pass needs."""
+        saved = []
+        hidden = actions
+        for index, (weight, bias, norm, activation) in enumerate(self.blocks):
+            if index == 0:
+                z = th.baddbmm(self.state_part, actions.expand(self.state_part.shape[0], *actions.shape), self.action_weight)
+            else:
+                z = th.baddbmm(bias.unsqueeze(1), hidden, weight)
+            norm_cache = None
+            if norm is not None:
+                z, norm_cache = _layer_norm_forward(norm, z)
+            saved.append((z, norm_cache))
+            hidden = activation(z)
+        return th.baddbmm(self.output_bias.unsqueeze(1), hidden, self.output_weight), saved
+
+
+def written_out_layers(critic: EnsembleCritic) -> tuple[list[_Block], tuple[th.Tensor, th.Tensor]]:
+    """
+    The hidden blocks and the output layer ``(weight, bias)`` of ``critic.ensemble`` when it is
+    ``[BatchRenorm] Linear [LayerNorm] activation ... [BatchRenorm] Linear(·, 1)`` with written-out activations and
+    any batch renormalisation in running-statistics mode (folded into the next layer: in that mode it is the affine
+    map ``gain · x + shift``).
+
+    :raises ValueError: for any other critic
+    """
+    blocks: list[_Block] = []
+    pending: tuple[th.Tensor, th.Tensor] | None = None  # the folded batch renormalisation before the next Linear
+    modules = list(critic.ensemble)
+    index = 0
+    output: tuple[th.Tensor, th.Tensor] | None = None
+    while index < len(modules):
+        module = modules[index]
+        if isinstance(module, EnsembleBatchRenorm):
+            if module.training or pending is not None:
+                raise _unsupported(critic)
+            with th.no_grad():
+                pending = module.normalisation()
+            index += 1
+            continue
+        if not isinstance(module, EnsembleLinear):
+            raise _unsupported(critic)
+        weight: th.Tensor = module.weight
+        bias: th.Tensor = module.bias
+        if pending is not None:
+            gain, shift = pending
+            with th.no_grad():
+                weight, bias = weight * gain.unsqueeze(2), th.baddbmm(bias.unsqueeze(1), shift.unsqueeze(1), weight).squeeze(1)
+            pending = None
+        if index == len(modules) - 1:
+            if module.out_features != 1:
+                raise _unsupported(critic)
+            output = (weight, bias)
+            break
+        norm = modules[index + 1] if isinstance(modules[index + 1], EnsembleLayerNorm) else None
+        position = index + (2 if norm is not None else 1)
+        if position >= len(modules) or type(modules[position]) not in ACTIVATION_BACKWARDS:
+            raise _unsupported(critic)
+        blocks.append((weight, bias, norm, modules[position]))  # type: ignore[arg-type]
+        index = position + 1
+    if output is None or not blocks:
+        raise _unsupported(critic)
+    return blocks, output
+
+
+def _unsupported(critic: EnsembleCritic) -> ValueError:
+    return ValueError(
+        "DACERF's Langevin gradient is written out for critics of ensemble Linear layers with "
+        f"{', '.join(cls.__name__ for cls in ACTIVATION_BACKWARDS)} activations (optionally LayerNorm or batch "
+        f"renormalisation in running-statistics mode) and one output, not for {critic.ensemble}: choose one of those "
+        "activation_fn in policy_kwargs."
+    )
 
 
 MlpPolicy = DACERFPolicy

@@ -12,10 +12,8 @@ from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
-from sb3_dacerf.common.deprecation import critic_from_flags
-from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm
-from sb3_dacerf.common.utils import frozen
-from sb3_dacerf.common.validation import HyperparameterRule, initial_ent_coef, integer_at_least, resolve_target_entropy
+from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
+from sb3_dacerf.common.validation import HyperparameterRule, made_env
 from sb3_dacerf.dsac.policies import CnnPolicy, DSACPolicy, GaussianActor, GaussianCritic, MlpPolicy, MultiInputPolicy
 
 #: ``ε`` of the weighting of the mean and standard-deviation gradients (``bias`` in the authors' code)
@@ -28,10 +26,6 @@ HUBER_DELTA = 50.0
 TARGET_BOUND_SCALE = 3.0
 #: The standard normal of a sampled return ``Q̄ + z σ̄`` is clipped to ``[-SAMPLE_CLIP, SAMPLE_CLIP]``
 SAMPLE_CLIP = 3.0
-#: Initial ``α`` of ``ent_coef="auto"``: ``log α = 1``, as in the authors' code (SB3's SAC starts at ``α = 1``)
-AUTO_INITIAL_ENT_COEF = math.e
-#: The critic losses: the authors' current one, and the one of GOPS and of the DSAC-T paper's equations
-CRITIC_LOSSES = ("dsac-v2", "gops")
 
 
 def distributional_targets(
@@ -79,50 +73,31 @@ def bounded_target(current_mean: th.Tensor, target_sample: th.Tensor, running_st
 
 
 def critic_loss(
-    mean: th.Tensor,
-    std: th.Tensor,
-    target_mean: th.Tensor,
-    target_bound: th.Tensor,
-    running_std: float | th.Tensor,
-    form: str = "dsac-v2",
+    mean: th.Tensor, std: th.Tensor, target_mean: th.Tensor, target_bound: th.Tensor, running_std: float | th.Tensor
 ) -> th.Tensor:
     """
-    The loss of one Gaussian critic ``N(Q, σ²)``, written so that its gradients are DSAC-T's: the mean follows the
-    expected-value target ``y`` (not a sampled one), the standard deviation the bounded sampled target ``y_b``, each
-    weighted with ``ε = 0.1`` so that small ``σ`` do not blow the step up.
-
-    ``"dsac-v2"`` (Jingliang-Duan/DSAC-v2 ``dsac_v2.py``): ``mean(w (huber_δ(Q, y) + σ (σ_d² - huber_δ(Q_d, y_b)) /
-    (σ_d + ε)))`` with ``w = clip(ω̄² / (σ_d² + ε), 0.1, 10)``, ``δ = 50`` and ``huber_δ(x) = x²/2`` for ``|x| <= δ``:
-    ``∂/∂Q = w (Q - y)``, ``∂/∂σ = w (σ² - (Q - y_b)²/2) / (σ + ε)`` (per sample, before the batch mean).
-
-    ``"gops"`` (GOPS ``gops/algorithm/dsact.py``, the DSAC-T paper's equations):
-    ``(ω̄² + ε) mean(-(y - Q_d) Q / (σ_d² + ε) - ((Q_d - y_b)² - σ_d²) σ / (σ_d³ + ε))``:
-    ``∂/∂Q = (ω̄² + ε) (Q - y) / (σ² + ε)``, ``∂/∂σ = (ω̄² + ε) (σ² - (Q - y_b)²) / (σ³ + ε)``.
-
-    (``_d``: treated as a constant.) Only the gradients are meaningful, not the value.
+    The loss of one Gaussian critic ``N(Q, σ²)``, written so that its gradients are DSAC-T's (Jingliang-Duan/DSAC-v2
+    ``dsac_v2.py``): the mean follows the expected-value target ``y`` (not a sampled one), the standard deviation the
+    bounded sampled target ``y_b``, each weighted with ``ε = 0.1`` so that small ``σ`` do not blow the step up:
+    ``mean(w (huber_δ(Q, y) + σ (σ_d² - huber_δ(Q_d, y_b)) / (σ_d + ε)))`` with ``w = clip(ω̄² / (σ_d² + ε), 0.1, 10)``,
+    ``δ = 50`` and ``huber_δ(x) = x²/2`` for ``|x| <= δ``: ``∂/∂Q = w (Q - y)``, ``∂/∂σ = w (σ² - (Q - y_b)²/2) / (σ + ε)``
+    per sample, before the batch mean (``_d``: treated as a constant). Only the gradients are meaningful, not the value.
 
     :param mean: ``Q(s, a)`` ``(batch, 1)``
     :param std: ``σ(s, a) > 0`` ``(batch, 1)``
     :param target_mean: ``y = r + γ (1 - done) (min_j Q̄_j(s', a') - α log π̄(a'|s'))`` ``(batch, 1)``
     :param target_bound: ``y_b`` of :func:`bounded_target` ``(batch, 1)``
     :param running_std: ``ω̄``, the running mean of this critic's ``σ``
-    :param form: ``"dsac-v2"`` or ``"gops"``
     :return: The scalar loss
     """
     omega = th.as_tensor(running_std, dtype=mean.dtype, device=mean.device)
     std_d = th.clamp(std, min=0.0).detach()
     mean_d = mean.detach()
     target_mean, target_bound = target_mean.detach(), target_bound.detach()
-    if form == "dsac-v2":
-        weight = (omega.pow(2) / (std_d.pow(2) + STD_EPSILON)).clamp(*WEIGHT_RANGE)
-        mean_term = F.huber_loss(mean, target_mean, delta=HUBER_DELTA, reduction="none")
-        std_term = std * (std_d.pow(2) - F.huber_loss(mean_d, target_bound, delta=HUBER_DELTA, reduction="none"))
-        return th.mean(weight * (mean_term + std_term / (std_d + STD_EPSILON)))
-    if form == "gops":
-        mean_term = -(target_mean - mean_d) / (std_d.pow(2) + STD_EPSILON) * mean
-        std_term = ((mean_d - target_bound).pow(2) - std_d.pow(2)) / (std_d.pow(3) + STD_EPSILON) * std
-        return (omega.pow(2) + STD_EPSILON) * th.mean(mean_term - std_term)
-    raise ValueError(f"Unknown critic loss form {form!r}: use one of {', '.join(repr(name) for name in CRITIC_LOSSES)}")
+    weight = (omega.pow(2) / (std_d.pow(2) + STD_EPSILON)).clamp(*WEIGHT_RANGE)
+    mean_term = F.huber_loss(mean, target_mean, delta=HUBER_DELTA, reduction="none")
+    std_term = std * (std_d.pow(2) - F.huber_loss(mean_d, target_bound, delta=HUBER_DELTA, reduction="none"))
+    return th.mean(weight * (mean_term + std_term / (std_d + STD_EPSILON)))
 
 
 class DSAC(TwinCriticAlgorithm):
@@ -183,8 +158,6 @@ class DSAC(TwinCriticAlgorithm):
     :param tau_b: Coefficient of the running mean ``ω̄`` of each critic's standard deviation,
         ``ω̄ <- (1 - tau_b) ω̄ + tau_b mean(σ)`` (``ω̄`` starts at the first batch's mean); ``None``: ``tau``, as
         in the authors' code
-    :param critic_loss: ``"dsac-v2"`` (the authors' current loss, with Huber terms and a clipped weight) or
-        ``"gops"`` (the loss of GOPS and of the DSAC-T paper's equations): see :func:`critic_loss`
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
@@ -206,16 +179,20 @@ class DSAC(TwinCriticAlgorithm):
     #: DSAC's own hyper-parameters with their valid values, besides those of every algorithm of the package
     hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
         **TwinCriticAlgorithm.hyperparameter_rules,
-        "policy_delay": integer_at_least(1),
         "alpha_learning_rate": HyperparameterRule(lambda value: value > 0, "> 0"),
         "tau_b": HyperparameterRule(lambda value: 0 < value <= 1, "in (0, 1], or None for tau"),
     }
     policy: DSACPolicy
     actor: GaussianActor
     actor_target: GaussianActor
-    # Gaussian critics (a mean and a standard deviation per critic), not the Q-value ensemble of the base class
-    critic: GaussianCritic  # type: ignore[assignment]
-    critic_target: GaussianCritic  # type: ignore[assignment]
+    critic: GaussianCritic
+    critic_target: GaussianCritic
+    #: ``ent_coef="auto"`` starts from ``α = e`` (``log α = 1``), as the authors' code (SB3's SAC starts at ``α = 1``)
+    auto_ent_coef = math.e
+    ent_coef_values = (
+        "'auto' (learned from α = e, the authors' log α = 1), 'auto_<initial α > 0>' (e.g. 'auto_1', SB3's SAC start) "
+        "or a number >= 0 (a fixed α)"
+    )
 
     def __init__(
         self,
@@ -239,7 +216,6 @@ class DSAC(TwinCriticAlgorithm):
         alpha_learning_rate: float = 3e-4,
         policy_delay: int = 2,
         tau_b: float | None = None,
-        critic_loss: str = "dsac-v2",
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -250,7 +226,7 @@ class DSAC(TwinCriticAlgorithm):
     ):
         super().__init__(
             policy,
-            env,
+            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
             learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
@@ -270,51 +246,30 @@ class DSAC(TwinCriticAlgorithm):
             verbose=verbose,
             seed=seed,
             device=device,
+            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
+            support_multi_env=True,
+            sde_support=False,
         )
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
         self.alpha_learning_rate = alpha_learning_rate
         self.policy_delay = policy_delay
         self.tau_b = tau if tau_b is None else tau_b
-        self.critic_loss = critic_loss
-        self.ent_coef_optimizer: th.optim.Adam | None = None
         #: Running means ``ω̄_i`` of the critics' standard deviations (``None`` before the first update)
         self.running_std: list[float] | None = None
 
         if _init_setup_model:
             self._setup_model()
 
-    def _check_hyperparameters(self) -> None:
-        super()._check_hyperparameters()
-        if self.critic_loss not in CRITIC_LOSSES:
-            raise ValueError(
-                f"Invalid critic_loss={self.critic_loss!r}: it must be one of {', '.join(repr(name) for name in CRITIC_LOSSES)}"
-            )
-        self._initial_ent_coef()  # raises for an invalid ent_coef
-
     def _setup_model(self) -> None:
-        # policy_kwargs of earlier versions (a user's, an RL Zoo file's, a saved model's) hold the critic booleans
-        self.policy_kwargs = critic_from_flags(self.policy_kwargs, "DSAC")
         super()._setup_model()
-        self.target_entropy = resolve_target_entropy(self.target_entropy, -float(get_action_dim(self.action_space)))
-        initial_ent_coef = self._initial_ent_coef()
-        # log α lives in the actor (saved with the policy); only ent_coef_optimizer changes it
-        self.actor.log_alpha.fill_(math.log(initial_ent_coef) if initial_ent_coef > 0 else -math.inf)
-        if isinstance(self.ent_coef, str):
-            self.ent_coef_optimizer = th.optim.Adam([self.actor.log_alpha], lr=self.alpha_learning_rate)
+        #: log α, trained by its own loss and optimizer when α is learned (as SB3's SAC)
+        self.log_ent_coef = th.zeros((), device=self.device)
+        self._setup_temperature(self.log_ent_coef, -float(get_action_dim(self.action_space)), self.alpha_learning_rate)
 
     def _create_aliases(self) -> None:
         super()._create_aliases()
         self.actor_target = self.policy.actor_target
-
-    def _initial_ent_coef(self) -> float:
-        """The initial ``α`` of ``ent_coef``; a ``ValueError`` naming the valid values for anything else."""
-        return initial_ent_coef(
-            self.ent_coef,
-            AUTO_INITIAL_ENT_COEF,
-            "'auto' (learned from α = e, the authors' log α = 1), 'auto_<initial α > 0>' (e.g. 'auto_1', "
-            "SB3's SAC start) or a number >= 0 (a fixed α).",
-        )
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
@@ -330,7 +285,7 @@ class DSAC(TwinCriticAlgorithm):
                 logs.setdefault(key, []).append(value)
 
         self.logger.record("train/n_updates", self._n_updates)
-        self.logger.record("train/ent_coef", self.actor.log_alpha.exp().item())
+        self.logger.record("train/ent_coef", self.log_ent_coef.exp().item())
         for key, values in logs.items():
             self.logger.record(f"train/{key}", np.mean(values))
         if self.running_std is not None:
@@ -348,7 +303,7 @@ class DSAC(TwinCriticAlgorithm):
         update_actor = (self._n_updates - 1) % self.policy_delay == 0
         # For n-step replay, discount factor is gamma**n_steps (when no early termination)
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-        ent_coef = self.actor.log_alpha.exp().item()
+        ent_coef = self.log_ent_coef.exp().item()
 
         with th.no_grad():
             # a' ~ π̄(·|s') from the target policy; both target critics' distributions at (s', a')
@@ -375,7 +330,7 @@ class DSAC(TwinCriticAlgorithm):
                 (1 - self.tau_b) * old + self.tau_b * new for old, new in zip(self.running_std, batch_stds, strict=True)
             ]
         losses = [
-            critic_loss(mean, std, target_mean, bounded_target(mean, target_sample, omega), omega, self.critic_loss)
+            critic_loss(mean, std, target_mean, bounded_target(mean, target_sample, omega), omega)
             for (mean, std), omega in zip(distributions, self.running_std, strict=True)
         ]
         loss = losses[0] + losses[1]
@@ -392,7 +347,8 @@ class DSAC(TwinCriticAlgorithm):
             # J_π = E[α log π(a|s) - min_j Q_j(s, a)], a ~ π(·|s) reparameterised; the critics receive no gradient
             actions, log_prob = self.actor.action_log_prob(replay_data.observations)
             with frozen(self._critic_parameters()):
-                actor_loss = (ent_coef * log_prob.reshape(-1, 1) - self._min_q(replay_data.observations, actions)).mean()
+                min_q = th.min(th.cat(self.critic(replay_data.observations, actions), dim=1), dim=1, keepdim=True).values
+                actor_loss = (ent_coef * log_prob.reshape(-1, 1) - min_q).mean()
             logs["actor_loss"] = self._checked(actor_loss, "actor loss", replay_data)
             logs["entropy"] = -log_prob.detach().mean().item()
             self.actor.optimizer.zero_grad()
@@ -403,11 +359,13 @@ class DSAC(TwinCriticAlgorithm):
             assert log_prob is not None
             self.actor.optimizer.step()
             if self.ent_coef_optimizer is not None:
-                # J(α) = -log α E[log π + H_target]: ∂J/∂log α = -(E[log π] + H_target) = H - H_target
+                # J(α) = -log α (E[log π] + H_target): ∂J/∂log α = H - H_target
                 ent_coef_gradient = -(log_prob.detach().mean().item() + float(self.target_entropy))
-                self.actor.log_alpha.grad = th.full_like(self.actor.log_alpha, ent_coef_gradient)
+                ent_coef_loss = self.log_ent_coef * ent_coef_gradient
+                self.ent_coef_optimizer.zero_grad()
+                ent_coef_loss.backward()
                 self.ent_coef_optimizer.step()
-                logs["ent_coef_loss"] = self.actor.log_alpha.item() * ent_coef_gradient
+                logs["ent_coef_loss"] = self.log_ent_coef.item() * ent_coef_gradient
             self._update_targets()
         return logs
 
@@ -421,6 +379,4 @@ class DSAC(TwinCriticAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, saved_variables = super()._get_torch_save_params()
-        if self.ent_coef_optimizer is not None:
-            state_dicts = [*state_dicts, "ent_coef_optimizer"]
-        return state_dicts, saved_variables
+        return state_dicts, [*saved_variables, "log_ent_coef"]

@@ -3,79 +3,88 @@ from typing import Any
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.policies import BaseModel, BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN, create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
+from sb3_dacerf.common.policies import TwinCriticPolicy
 
 #: Added to ``1 - tanh(u)²`` in the log-density of a tanh-squashed action, as in the authors' code and SB3
 TANH_EPSILON = 1e-6
 
 
-class GaussianActor(GenerativeActor):
+class GaussianActor(BasePolicy):
     """
     Tanh-Gaussian actor of DSAC: ``a = tanh(u)``, ``u ~ N(μ(s), σ(s)²)``, with ``μ`` and ``log σ`` the two halves of
     the output of one network (:attr:`network`, ``2 · action_dim`` outputs, as the authors' ``mlp_shared`` policy)
-    and ``log σ`` clipped to ``[log_std_min, log_std_max]``.
+    and ``log σ`` clipped to ``[log_std_min, log_std_max]``. The Gaussian is the exploration: no noise is added on top.
 
-    As a :class:`sb3_dacerf.common.policies.GenerativeActor` it turns noise into actions: :meth:`sample` with
-    ``noise = ξ ~ N(0, I)`` is ``tanh(μ + σ ξ)`` (the reparameterised sample), and ``noise=None`` gives ``tanh(μ)``,
-    the deterministic action. The Gaussian is the exploration: no noise is added on top (:attr:`exploration_std`
-    is 0). ``log_alpha`` holds ``log α`` of the entropy temperature, set and learned by the algorithm.
-
-    Takes the arguments of :class:`sb3_dacerf.common.policies.GenerativeActor` (``observation_space``,
-    ``action_space``, ``net_arch``, ``features_extractor``, ``features_dim``, ``activation_fn``,
-    ``normalize_images``; ``exploration_noise_scale`` must stay 0) and:
-
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param net_arch: Hidden layer sizes of the network
+    :param features_extractor: Network to extract features (a CNN when using images, a nn.Flatten() layer otherwise)
+    :param features_dim: Number of features
+    :param activation_fn: Activation function
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
     :param log_std_min: Lower clip of ``log σ`` (-20, the authors' and SB3's)
     :param log_std_max: Upper clip of ``log σ`` (0.5, the authors'; SB3's SAC uses 2)
     """
 
+    action_space: spaces.Box
+
     def __init__(
         self,
-        *args: Any,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: nn.Module,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
         log_std_min: float = -20.0,
         log_std_max: float = 0.5,
-        **kwargs: Any,
     ):
-        kwargs.setdefault("exploration_noise_scale", 0.0)
-        super().__init__(*args, **kwargs)
-        if self.exploration_noise_scale != 0.0:
-            raise ValueError(
-                f"GaussianActor explores by its own standard deviation: exploration_noise_scale="
-                f"{self.exploration_noise_scale!r} must be 0 (use action_noise for extra noise)"
-            )
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=features_extractor,
+            normalize_images=normalize_images,
+            squash_output=True,
+        )
         if not (math.isfinite(log_std_min) and math.isfinite(log_std_max) and log_std_min < log_std_max):
             raise ValueError(
                 f"Invalid log_std_min={log_std_min!r}, log_std_max={log_std_max!r}: they must be finite numbers with "
                 "log_std_min < log_std_max (the authors' are -20 and 0.5)"
             )
+        self.net_arch = net_arch
+        self.features_dim = features_dim
+        self.activation_fn = activation_fn
+        self.action_dim = get_action_dim(self.action_space)
         self.log_std_min = float(log_std_min)
         self.log_std_max = float(log_std_max)
         self.network = nn.Sequential(*create_mlp(self.features_dim, 2 * self.action_dim, self.net_arch, self.activation_fn))
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(log_std_min=self.log_std_min, log_std_max=self.log_std_max)
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                features_dim=self.features_dim,
+                activation_fn=self.activation_fn,
+                features_extractor=self.features_extractor,
+                log_std_min=self.log_std_min,
+                log_std_max=self.log_std_max,
+            )
+        )
         return data
 
     @property
     def noise_shape(self) -> tuple[int, ...]:
         """``(action_dim,)``: the standard normal ``ξ`` of ``u = μ + σ ξ``."""
         return (self.action_dim,)
-
-    @property
-    def exploration_std(self) -> th.Tensor:
-        """0: the Gaussian's own ``σ`` explores, nothing is added."""
-        return th.zeros_like(self.log_alpha)
-
-    def add_exploration_noise(self, actions: th.Tensor) -> th.Tensor:
-        """:return: ``actions`` itself (the Gaussian's own ``σ`` explores; no random number is drawn)"""
-        return actions
 
     def distribution_parameters(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
@@ -95,6 +104,15 @@ class GaussianActor(GenerativeActor):
         if noise is None:
             return th.tanh(mean)
         return th.tanh(mean + log_std.exp() * noise)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        features = self.extract_features(obs, self.features_extractor)
+        if deterministic:
+            return self.sample(features)
+        return self.sample(features, th.randn((features.shape[0], self.action_dim), device=features.device, dtype=features.dtype))
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self(observation, deterministic)
 
     def sample_with_log_prob(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
@@ -122,17 +140,19 @@ class GaussianActor(GenerativeActor):
         return self.sample_with_log_prob(self.extract_features(obs, self.features_extractor))
 
 
-class GaussianCritic(ContinuousCritic):
+class GaussianCritic(BaseModel):
     """
-    Twin distributional critics of DSAC: each network outputs the mean ``Q(s, a)`` and the standard deviation
-    ``σ(s, a) = softplus(·)`` of a Gaussian return distribution (the authors' ``ActionValueDistri``).
+    Twin distributional critics of DSAC: each network ``qf<j>`` outputs the mean ``Q(s, a)`` and the standard
+    deviation ``σ(s, a) = softplus(·)`` of a Gaussian return distribution (the authors' ``ActionValueDistri``).
 
     Called like SB3's ``ContinuousCritic`` it returns the means only, one ``(batch, 1)`` tensor per network, so that
-    code written for a Q-function (``min_q``, ``q1_forward``) reads the expected values; :meth:`distributions`
-    returns the means and the standard deviations. Same arguments as ``ContinuousCritic``, and:
+    code written for a Q-function (``q1_forward``) reads the expected values; :meth:`distributions` returns the means
+    and the standard deviations. Same arguments as SB3's ``ContinuousCritic``, and:
 
     :param layer_norm: ``LayerNorm`` after every hidden linear layer (before the activation)
     """
+
+    features_extractor: BaseFeaturesExtractor
 
     def __init__(
         self,
@@ -148,24 +168,19 @@ class GaussianCritic(ContinuousCritic):
         layer_norm: bool = False,
     ):
         super().__init__(
-            observation_space,
-            action_space,
-            net_arch,
-            features_extractor,
-            features_dim,
-            activation_fn=activation_fn,
-            normalize_images=normalize_images,
-            n_critics=n_critics,
-            share_features_extractor=share_features_extractor,
+            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
         )
+        self.share_features_extractor = share_features_extractor
+        self.n_critics = n_critics
         input_dim = features_dim + get_action_dim(action_space)
-        # Rebuilt with two outputs (mean, pre-softplus σ); a ModuleList, as sb3_dacerf's other critics
-        self.q_networks = nn.ModuleList()  # type: ignore[assignment]
-        for idx in range(n_critics):
-            layers = create_mlp(input_dim, 2, net_arch, activation_fn, post_linear_modules=[nn.LayerNorm] if layer_norm else None)
-            q_net = nn.Sequential(*layers)
+        post_linear_modules: list[type[nn.Module]] | None = [nn.LayerNorm] if layer_norm else None
+        networks = [
+            nn.Sequential(*create_mlp(input_dim, 2, net_arch, activation_fn, post_linear_modules=post_linear_modules))
+            for _ in range(n_critics)
+        ]
+        for idx, q_net in enumerate(networks):
             self.add_module(f"qf{idx}", q_net)
-            self.q_networks.append(q_net)
+        self.q_networks = nn.ModuleList(networks)
 
     def distributions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[tuple[th.Tensor, th.Tensor], ...]:
         """
@@ -207,9 +222,8 @@ class DSACPolicy(TwinCriticPolicy):
     actor_class = GaussianActor
     actor: GaussianActor
     actor_target: GaussianActor
-    # Gaussian critics (a mean and a standard deviation per critic), not the Q-value ensemble of the base class
-    critic: GaussianCritic  # type: ignore[assignment]
-    critic_target: GaussianCritic  # type: ignore[assignment]
+    critic: GaussianCritic
+    critic_target: GaussianCritic
 
     def __init__(
         self,
@@ -256,7 +270,7 @@ class DSACPolicy(TwinCriticPolicy):
         self.actor_target.load_state_dict(self.actor.state_dict())
         self.actor_target.set_training_mode(False)
 
-    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> GaussianCritic:  # type: ignore[override]  # a GaussianCritic is a ContinuousCritic
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> GaussianCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return GaussianCritic(**critic_kwargs, layer_norm=self.critic_kind == "layer_norm").to(self.device)
 

@@ -42,7 +42,7 @@ class ExportablePolicy(nn.Module, ABC):
     action_center: th.Tensor
     action_half_range: th.Tensor
 
-    def __init__(self, actor: GenerativeActor, vec_normalize: VecNormalize | None = None):
+    def __init__(self, actor: GenerativeActor | GaussianActor, vec_normalize: VecNormalize | None = None):
         super().__init__()
         # A copy, so that exporting neither moves nor switches the mode of the model being trained
         self.actor = copy.deepcopy(actor).cpu().requires_grad_(False)
@@ -282,7 +282,7 @@ def _linear(layer: nn.Module) -> nn.Linear:
 
 
 def exportable_policy(
-    actor: GenerativeActor, n_sampling_steps: int | None = None, vec_normalize: VecNormalize | None = None
+    actor: GenerativeActor | GaussianActor, n_sampling_steps: int | None = None, vec_normalize: VecNormalize | None = None
 ) -> ExportablePolicy:
     """
     The deployment graph of an actor of this package.
