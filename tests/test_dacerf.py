@@ -178,6 +178,8 @@ def test_resumed_training_with_saved_replay_buffer(tmp_path, fast):
     assert loaded._n_updates == n_updates + 50
 
 
+# SB3's progress bar is tqdm's rich bar, which tqdm calls experimental
+@pytest.mark.filterwarnings("ignore::tqdm.TqdmExperimentalWarning")
 def test_callbacks_and_tensorboard(tmp_path, fast):
     model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, tensorboard_log=str(tmp_path / "tb"), **fast)
     model.learn(100, callback=CheckpointCallback(save_freq=50, save_path=str(tmp_path / "ckpt")), progress_bar=True)
