@@ -515,10 +515,10 @@ def test_render_errors_name_the_problem(tmp_path, capsys):
 def test_standing_value_compares_standing_with_the_scripted_driver(capsys):
     standing_value = load_example("standing_value", BENCHMARKS)
     summary = standing_value.main(["--episodes", "3", "--stand-steps", "30", "--config", '{"routes": ["right"]}'])
-    assert list(summary) == ["right"]
+    assert list(summary) == [("normal", "right")]
     # standing costs speed tracking at every step; the scripted driver's right turns are cheap
-    assert summary["right"]["standing"] < -100 < summary["right"]["scripted"]
-    assert "| right | 3 |" in capsys.readouterr().out
+    assert summary["normal", "right"]["standing"] < -100 < summary["normal", "right"]["scripted"]
+    assert "| normal | right | 3 |" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         standing_value.main(["--gamma", "1"])
 
