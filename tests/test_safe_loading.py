@@ -167,6 +167,17 @@ def test_safe_load_round_trip_rebuilds_what_sb3_pickles(tmp_path):
         loaded.learn(60)  # trains on
 
 
+def test_safe_load_without_reset_goes_on_from_the_last_observation(tmp_path):
+    """load(..., force_reset=False) keeps the rollout's last observations, as SB3's load does (a resumed training)."""
+    model = DACERF("MlpPolicy", "Pendulum-v1", **fast_settings(DACERF))
+    model.learn(60)
+    model.save(tmp_path / "model.zip")
+    loaded = DACERF.load(tmp_path / "model.zip", env=model.get_env(), force_reset=False)
+    assert loaded._last_obs.dtype == model._last_obs.dtype and np.array_equal(loaded._last_obs, model._last_obs)
+    assert np.array_equal(loaded._last_episode_starts, model._last_episode_starts)
+    assert DACERF.load(tmp_path / "model.zip", env=model.get_env())._last_obs is None  # force_reset=True: a new episode
+
+
 def test_known_schedules_come_back_and_others_need_custom_objects(tmp_path):
     from rl_zoo3.utils import linear_schedule
     from stable_baselines3.common.utils import LinearSchedule

@@ -77,9 +77,10 @@ KNOWN_SCHEDULES = frozenset(
 #: What ``data`` pickles that a safe load leaves at the constructor's values: the last rollout's observations and the
 #: episode statistics (both restart with the next ``learn``), and the schedule ``_setup_model`` rebuilds from
 #: ``learning_rate``
-RESTARTED_ON_LOAD = frozenset(
-    {"_last_obs", "_last_episode_starts", "_last_original_obs", "ep_info_buffer", "ep_success_buffer", "lr_schedule"}
-)
+RESTARTED_ON_LOAD = frozenset({"ep_info_buffer", "ep_success_buffer", "lr_schedule"})
+#: The rollout's last observations, kept as JSON arrays when they are arrays (a ``load(..., force_reset=False)`` goes
+#: on from them, as SB3's does) and restarted otherwise
+RESUMED_IF_ENCODED = frozenset({"_last_obs", "_last_episode_starts", "_last_original_obs"})
 
 
 class UnsafeFileError(ValueError):
@@ -229,7 +230,8 @@ def _safe_entry(model: BaseAlgorithm, data: dict[str, Any]) -> dict[str, Any]:
         try:
             objects[key] = _encode(key, getattr(model, key))
         except TypeError as error:
-            not_encoded[key] = str(error)
+            if key not in RESUMED_IF_ENCODED:
+                not_encoded[key] = str(error)
     return {
         "algorithm": type(model).__name__,
         "policy": aliases[0] if aliases else None,
@@ -402,7 +404,7 @@ def _rebuilt_data(cls: type, path: Any, entry: dict[str, Any], data: dict[str, A
             continue  # the class of entry["policy"], one of the algorithm's aliases
         elif key in objects:
             rebuilt[key] = _decode(key, objects[key])
-        elif key not in RESTARTED_ON_LOAD:
+        elif key not in RESTARTED_ON_LOAD | RESUMED_IF_ENCODED:
             unsafe[key] = not_encoded.get(key, value.get(":type:", "a pickled object"))
     if unsafe:
         listing = "; ".join(f"{key} ({why})" for key, why in unsafe.items())
@@ -437,6 +439,8 @@ def _encode_value(value: Any, where: str) -> Any:
         return [_encode_value(item, f"{where}[{i}]") for i, item in enumerate(value)]
     if isinstance(value, dict) and all(isinstance(k, str) for k in value):
         return {"dict": {k: _encode_value(v, f"{where}[{k!r}]") for k, v in value.items()}}
+    if isinstance(value, np.ndarray) and value.dtype.kind in "biuf":
+        return {"array": {"dtype": str(value.dtype), "shape": list(value.shape), "data": value.ravel().tolist()}}
     if isinstance(value, type) and f"{value.__module__}.{value.__qualname__}" in KNOWN_CLASSES:
         return {"class": f"{value.__module__}.{value.__qualname__}"}
     schedule = f"{type(value).__module__}.{type(value).__qualname__}"
@@ -463,6 +467,12 @@ def _decode_value(value: Any) -> Any:
             return KNOWN_CLASSES[value["class"]]
         if "float" in value:
             return float(value["float"])
+        if "array" in value:
+            array = value["array"]
+            dtype = np.dtype(str(array["dtype"]))
+            if dtype.kind not in "biuf":
+                raise UnsafeFileError(f"The file holds an array of dtype {dtype}: only booleans and numbers are read")
+            return np.asarray(array["data"], dtype=dtype).reshape(array["shape"])
         if "schedule" in value:
             if value["schedule"] not in KNOWN_SCHEDULES:
                 raise UnsafeFileError(f"The file names the schedule {value['schedule']!r}, none of {sorted(KNOWN_SCHEDULES)}")
