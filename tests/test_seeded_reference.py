@@ -19,6 +19,8 @@ import torch as th
 
 from sb3_dacerf import DACER, DACERF, DSAC
 
+pytestmark = pytest.mark.slow  # 200 gradient steps of each algorithm, ~30 s: make check runs it
+
 REFERENCE_DIR = Path(__file__).parent / "data" / "seeded_reference"
 SEED = 3
 SMALL: dict[str, Any] = dict(learning_starts=100, batch_size=64, buffer_size=1_000)
