@@ -1,6 +1,6 @@
 """
-A scripted driver for the paper's driving scenarios: a baseline to compare learnt policies with, and the "competent
-driver" of the reward audit (``benchmarks/driving_reward_audit.py``).
+A scripted driver for the paper's driving scenarios: a baseline to compare learnt policies with, and the driver that
+``benchmarks/standing_value.py`` sets against standing still.
 
 It reads only the observation (and the env's config for the scales, the action bounds and the ego's length): pure
 pursuit on the observed reference waypoints, a speed controller towards the target speed encoded in the waypoint

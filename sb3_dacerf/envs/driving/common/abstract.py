@@ -330,24 +330,20 @@ class PaperDrivingMixin(_HighwayEnv):
         """
         The penalty of a collision or of leaving the road at the current step (positive).
 
-        A number ``collision_penalty`` is used as is (the paper's example: 200). ``"dynamic"`` (the default) is this
-        package's formula for the paper's "or dynamically calculated" (the paper gives none), tied to what is left of
-        the episode::
+        A number ``collision_penalty`` is used as is (the paper's example: 200, the intersection's default).
+        ``"dynamic"`` (the multi-lane default) is this package's formula for the paper's "or dynamically calculated"
+        (the paper gives none), tied to what is left of the episode::
 
             P = dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left
 
         with ``steps_left`` the policy steps left until the time limit. ``rho_step`` is the best reward rate (liveness
         is the only positive term), so the penalty exceeds the reward that the rest of the episode could still earn;
-        ``dynamic_penalty_cost_rate`` (20) is the per-step cost of driving on that must still beat ending the episode.
-        Ending the episode at any step is then worse, by at least ``dynamic_penalty_base``, than driving on to the
-        time limit or the destination at any average reward above ``-dynamic_penalty_cost_rate`` per step. 20 covers
-        every drive of the scripted driver measured by ``benchmarks/driving_reward_audit.py`` (worst: -17.3 per step,
-        a collision-free 30 s drive behind slower traffic in dense multilane traffic), where the constant 200 made
-        leaving the road (-313 in 9 steps) better than its drives in normal (-633) and dense (-2128) traffic.
-
+        ``dynamic_penalty_cost_rate`` is the per-step cost of driving on that must still beat ending the episode:
+        ending the episode at any step is worse, by at least ``dynamic_penalty_base``, than driving on to the time
+        limit or the destination at any average reward above ``-dynamic_penalty_cost_rate`` per step.
         ``dynamic_penalty_discount`` (γ, default 1) replaces ``steps_left`` by its discounted length
-        ``(1 - γ^steps_left) / (1 - γ)``: the same guarantee for a learner that maximises the return discounted by γ,
-        with the smallest penalty that gives it (2,262 instead of 8,579 at the intersection's first step, γ = 0.99).
+        ``(1 - γ^steps_left) / (1 - γ)``: the same guarantee for a learner that maximises the return discounted by γ.
+        The dynamic penalty depends on the time left, which the observation does not hold.
         """
         config = self.config
         if config["collision_penalty"] != "dynamic":
