@@ -456,7 +456,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
                 collision_rate=float(np.mean(collisions)),
                 off_road_rate=float(np.mean(off_road)),
                 action_spread=float(spread),
-                ent_coef=float(log_alpha.exp()) if log_alpha is not None else np.nan,
+                ent_coef=float(log_alpha.detach().exp()) if log_alpha is not None else np.nan,
                 wall_seconds=time.perf_counter() - start,
                 commit=job["commit"],
             )
