@@ -45,3 +45,15 @@ def model_class(request: pytest.FixtureRequest) -> type:
 def fast(model_class: type) -> dict[str, Any]:
     """:func:`fast_settings` of ``model_class``."""
     return fast_settings(model_class)
+
+
+def autograd_action_gradient(q_function):
+    """∇_a Q(a) of a differentiable ``q_function`` by autograd: the reference the written-out gradient is checked against."""
+
+    def gradient(actions: th.Tensor) -> th.Tensor:
+        with th.enable_grad():
+            actions = actions.detach().requires_grad_(True)
+            (grad,) = th.autograd.grad(q_function(actions).sum(), actions)
+        return grad
+
+    return gradient

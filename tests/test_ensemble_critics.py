@@ -7,6 +7,7 @@ from copy import deepcopy
 import numpy as np
 import pytest
 import torch as th
+from conftest import autograd_action_gradient
 from stable_baselines3.common.envs import IdentityEnvBox
 from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
@@ -22,19 +23,6 @@ from sb3_dacerf.common.policies import (
 )
 from sb3_dacerf.common.twin_critic import frozen
 from sb3_dacerf.dacerf.dacerf import actor_loss_weights, flow_matching_loss, langevin_targets
-
-
-def autograd_action_gradient(q_function):
-    """∇_a Q(a) of a differentiable ``q_function`` by autograd (the reference)."""
-
-    def gradient(actions: th.Tensor) -> th.Tensor:
-        with th.enable_grad():
-            actions = actions.detach().requires_grad_(True)
-            (grad,) = th.autograd.grad(q_function(actions).sum(), actions)
-        return grad
-
-    return gradient
-
 
 CRITICS = {
     "mlp": dict(critic="mlp"),

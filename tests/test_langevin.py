@@ -2,6 +2,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from conftest import autograd_action_gradient
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
 
@@ -9,18 +10,6 @@ from sb3_dacerf.common.policies import BatchRenormCritic, EnsembleBatchRenorm, E
 from sb3_dacerf.common.twin_critic import frozen
 from sb3_dacerf.dacerf.dacerf import langevin_targets
 from sb3_dacerf.dacerf.policies import ACTIVATION_BACKWARDS, MinQActionGradient
-
-
-def autograd_action_gradient(q_function):
-    """∇_a Q(a) of a differentiable ``q_function`` by autograd: the reference the written-out gradient is checked against."""
-
-    def gradient(actions: th.Tensor) -> th.Tensor:
-        with th.enable_grad():
-            actions = actions.detach().requires_grad_(True)
-            (grad,) = th.autograd.grad(q_function(actions).sum(), actions)
-        return grad
-
-    return gradient
 
 
 def quadratic_q(mean: th.Tensor):

@@ -74,8 +74,8 @@ KNOWN_SCHEDULES = frozenset(
         "rl_zoo3.utils.SimpleLinearSchedule",
     }
 )
-#: What ``data`` pickles that a safe load leaves at the constructor's values: the last rollout's observations and the
-#: episode statistics (both restart with the next ``learn``), and the schedule ``_setup_model`` rebuilds from
+#: What ``data`` pickles that a safe load leaves at the constructor's values: the episode statistics (they restart
+#: with the next ``learn``) and the schedule ``_setup_model`` rebuilds from
 #: ``learning_rate``
 RESTARTED_ON_LOAD = frozenset({"ep_info_buffer", "ep_success_buffer", "lr_schedule"})
 #: The rollout's last observations, kept as JSON arrays when they are arrays (a ``load(..., force_reset=False)`` goes
@@ -160,7 +160,8 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
         Load a model saved by ``save``, running no code from the file: see :meth:`BaseAlgorithm.load` for the
         arguments. ``data`` is read as JSON, the objects SB3 pickles are rebuilt from ``sb3_dacerf.json`` and closed
         lists of known classes, the tensors are read with ``torch.load(weights_only=True)``. The last rollout's
-        observations and the episode statistics restart with the next ``learn``.
+        observations come back (``force_reset=False`` goes on from them); the episode statistics restart with the next
+        ``learn``.
 
         :param custom_objects: Values of ``data`` entries to use instead of the file's (e.g. a learning-rate schedule,
             which a file holds only pickled): ``{"learning_rate": 0.0}`` to load such a model for prediction
