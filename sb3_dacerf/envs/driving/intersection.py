@@ -367,14 +367,22 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             return np.inf  # in the junction, or committed to it
         conflicts = self._conflicts[ROUTES[self.route]]
         to_turn = float(ego.position[1]) - JUNCTION_HALF_SIZE  # from the ego's centre to the start of its turn lane
+        # The ego's time window at each conflict, for all of them at once
+        stretches = np.array([(ego_in, ego_out) for ego_in, ego_out, _, _ in conflicts.values()]).reshape(-1, 2)
+        padding = np.array([-ego.LENGTH / 2 - 3.0, ego.LENGTH / 2 + 3.0])
+        times = travel_time(to_turn + stretches + padding, ego.speed, 0.7, self.reference_speed)
+        windows = dict(zip(conflicts, times, strict=True))
         for vehicle in self.road.vehicles:
             if vehicle is ego:
                 continue
             lane_index = vehicle.lane_index
             turn = next((lane for lane in (lane_index, *(vehicle.route or ())) if lane[0].startswith("ir")), None)
-            if turn is None or (int(turn[0][2:]), int(turn[1][2:])) not in conflicts:
+            if turn is None:
                 continue
-            ego_in, ego_out, traffic_in, traffic_out = conflicts[int(turn[0][2:]), int(turn[1][2:])]
+            pair = (int(turn[0][2:]), int(turn[1][2:]))
+            if pair not in conflicts:
+                continue
+            _, _, traffic_in, traffic_out = conflicts[pair]
             s = vehicle.lane.local_coordinates(vehicle.position)[0]
             if lane_index[0] == turn[0]:
                 to_conflict = traffic_in - s
@@ -386,8 +394,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             leaves = (to_conflict + traffic_out - traffic_in + vehicle.LENGTH / 2) / max(vehicle.speed, 2.0) + self.YIELD_MARGIN
             if leaves <= 0:
                 continue
-            enters = float(travel_time(to_turn + ego_in - ego.LENGTH / 2 - 3.0, ego.speed, 0.7, self.reference_speed))
-            exits = float(travel_time(to_turn + ego_out + ego.LENGTH / 2 + 3.0, ego.speed, 0.7, self.reference_speed))
+            enters, exits = windows[pair]
             if enters < leaves and arrives < exits:
                 return float(np.sqrt(2 * self.YIELD_DECELERATION * max(front_to_line - 1.0, 0.0)))
         return np.inf
