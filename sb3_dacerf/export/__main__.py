@@ -1,5 +1,5 @@
-"""``python -m sb3_dacerf.export``: the command line of :mod:`sb3_dacerf.export.cli`."""
+"""``python -m sb3_dacerf.export``: see :func:`sb3_dacerf.export.main`."""
 
-from sb3_dacerf.export.cli import main
+from sb3_dacerf.export import main
 
 main()
