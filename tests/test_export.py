@@ -356,7 +356,7 @@ def test_command_line_refuses_vec_normalize_statistics_of_another_observation_sp
         ),
         (
             vec_normalize_file(tmp_path, lambda: SimpleMultiObsEnv(discrete_actions=False), "keys.json", norm_obs_keys=["vec"]),
-            r"are for Dict observations \(keys \['vec'\]\)",
+            r"shape \{'vec': \(5,\)\} but the model's observations have shape \(3,\)",
         ),
         (str(tmp_path / "junk.json"), "could not read .*junk.json as observation statistics"),
         (str(tmp_path / "dict.pkl"), "is a pickle, which runs any code it holds when read"),
@@ -375,11 +375,11 @@ def test_command_line_refuses_vec_normalize_statistics_of_another_observation_sp
 def test_dict_model_refuses_statistics_of_another_layout(tmp_path):
     model = make_model("MultiInputPolicy")
     box_statistics = VecNormalize(make_vec_env("Pendulum-v1"))
-    with pytest.raises(ValueError, match=r"one observation array of shape \(3,\) but the model takes Dict observations"):
+    with pytest.raises(ValueError, match=r"shape \(3,\) but the model's observations have shape \{.*'vec': \(5,\)"):
         export_policy(model, tmp_path / "p.onnx", vec_normalize=box_statistics)
     other_shape = VecNormalize(make_vec_env(lambda: SimpleMultiObsEnv(discrete_actions=False)), norm_obs_keys=["vec"])
     other_shape.obs_rms["vec"].mean = np.zeros(7)
-    with pytest.raises(ValueError, match=r"key 'vec' have shape \(7,\) but the model's 'vec' observations have shape \(5,\)"):
+    with pytest.raises(ValueError, match=r"shape \{'vec': \(7,\)\} but the model's observations have shape \{.*'vec': \(5,\)"):
         export_policy(model, tmp_path / "p.onnx", vec_normalize=other_shape)
 
 

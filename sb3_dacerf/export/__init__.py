@@ -16,7 +16,7 @@ import pickle
 import warnings
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
@@ -282,35 +282,24 @@ def check_vec_normalize(vec_normalize: object, observation_space: spaces.Space) 
     if not getattr(vec_normalize, "norm_obs", False):
         return
     obs_rms = getattr(vec_normalize, "obs_rms", None)
-    mean_shape = np.asarray(getattr(obs_rms, "mean", None)).shape  # () when there is none
-    advice = "Give the statistics saved together with this model (RL Zoo: <log folder>/<env id>/vecnormalize.pkl)."
+    # The shapes of the statistics and of the model's observations: one shape, or one per key of a Dict space
+    shapes: Any = {k: _mean_shape(r) for k, r in obs_rms.items()} if isinstance(obs_rms, dict) else _mean_shape(obs_rms)
     if isinstance(observation_space, spaces.Dict):
-        if not isinstance(obs_rms, dict):
-            raise ValueError(
-                f"The VecNormalize statistics normalise one observation array of shape {mean_shape} but the model takes "
-                f"Dict observations with keys {list(observation_space.spaces)}. {advice}"
-            )
-        for key, rms in obs_rms.items():
-            if key not in observation_space.spaces:
-                raise ValueError(
-                    f"The VecNormalize statistics normalise the observation key {key!r}, which the model does not have "
-                    f"(its keys: {list(observation_space.spaces)}). {advice}"
-                )
-            if np.shape(rms.mean) != observation_space[key].shape:
-                raise ValueError(
-                    f"The VecNormalize statistics of the key {key!r} have shape {np.shape(rms.mean)} but the model's "
-                    f"{key!r} observations have shape {observation_space[key].shape}. {advice}"
-                )
-    elif isinstance(obs_rms, dict):
+        expected: Any = {key: space.shape for key, space in observation_space.spaces.items()}
+        fits = isinstance(shapes, dict) and all(expected.get(key) == shape for key, shape in shapes.items())
+    else:
+        expected = observation_space.shape
+        fits = shapes == expected
+    if not fits:
         raise ValueError(
-            f"The VecNormalize statistics are for Dict observations (keys {list(obs_rms)}) but the model takes one "
-            f"observation array of shape {observation_space.shape}. {advice}"
+            f"The VecNormalize statistics normalise observations of shape {shapes} but the model's observations have "
+            f"shape {expected}. Give the statistics saved together with this model (RL Zoo: <log folder>/<env id>/"
+            "vecnormalize.pkl)."
         )
-    elif mean_shape != observation_space.shape:
-        raise ValueError(
-            f"The VecNormalize statistics normalise observations of shape {mean_shape} but the model's observations "
-            f"have shape {observation_space.shape}. {advice}"
-        )
+
+
+def _mean_shape(rms: object) -> tuple[int, ...]:
+    return np.asarray(getattr(rms, "mean", None)).shape  # () when there is none
 
 
 def _finite(obs: th.Tensor) -> th.Tensor:
