@@ -120,10 +120,6 @@ def safe_load(
         get_system_info()
     params, pytorch_variables = _read_tensors(path, device)
     data["policy_kwargs"].pop("device", None)
-    if "policy_kwargs" in kwargs and kwargs["policy_kwargs"] != data["policy_kwargs"]:
-        raise ValueError(
-            f"The policy_kwargs given ({kwargs['policy_kwargs']}) differ from the saved ones ({data['policy_kwargs']})"
-        )
     if env is not None:
         env = cls._wrap_env(env, data["verbose"])
         check_for_correct_spaces(env, data["observation_space"], data["action_space"])
@@ -131,8 +127,7 @@ def safe_load(
             data["_last_obs"] = None
         data["n_envs"] = env.num_envs
     model = cls(policy=cls.policy_aliases[entry["policy"]], env=env, device=device, _init_setup_model=False)  # type: ignore[call-arg,arg-type]
-    model.__dict__.update(data)
-    model.__dict__.update(kwargs)
+    model.__dict__.update({**data, **kwargs})
     model._setup_model()
     missing = [f"{name}.pth" for name in model._get_torch_save_params()[0] if name not in params]
     if missing:
@@ -515,16 +510,10 @@ def load_vec_normalize(path: str | os.PathLike, venv: VecEnv | None = None) -> V
             **_settings(encoded.__getitem__),
             "obs_rms": _rms_from_json(encoded["obs_rms"]),
             "ret_rms": _rms_from_json(encoded["ret_rms"]),
-            "num_envs": 1,
-            "render_mode": None,
-            "metadata": {},
-            "reset_infos": [{}],
-            "_seeds": [None],
-            "_options": [{}],
-            "old_obs": np.array([]),
-            "old_reward": np.array([]),
-            "returns": np.zeros(1),
         }
+        # What a VecNormalize without environment still has (set_venv replaces them)
+        state.update(num_envs=1, render_mode=None, metadata={}, reset_infos=[{}], _seeds=[None], _options=[{}])
+        state.update(old_obs=np.array([]), old_reward=np.array([]), returns=np.zeros(1))
         if cls is MaskedVecNormalize:
             state["rows"] = tuple(int(v) for v in encoded["rows"])
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as error:
@@ -536,12 +525,8 @@ def load_vec_normalize(path: str | os.PathLike, venv: VecEnv | None = None) -> V
     normalizer.__setstate__(state)  # what unpickling does, from the JSON's values
     if venv is not None:
         normalizer.set_venv(venv)
-        n_envs = venv.num_envs
-        normalizer.reset_infos, normalizer._seeds, normalizer._options = (
-            [{} for _ in range(n_envs)],
-            [None] * n_envs,
-            [{}] * n_envs,
-        )
+        normalizer.reset_infos = [{} for _ in range(venv.num_envs)]
+        normalizer._seeds, normalizer._options = [None] * venv.num_envs, [{}] * venv.num_envs
     return normalizer
 
 
