@@ -22,7 +22,7 @@ import runpy
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -67,11 +67,8 @@ def sample_optimisation_params(trial: optuna.Trial) -> Params:
 
 def convert_dacer_params(sampled_params: Params, policy_kwargs: Params | None = None) -> Params:
     """
-    DACER's arguments from an Optuna trial's ``params`` (:func:`sample_dacer_params`; ``--trial-id`` reloads them).
-    The other converters start from it.
-
-    :param sampled_params: the trial's parameters
-    :param policy_kwargs: the YAML entry's ``policy_kwargs``, which the drawn ``net_arch`` updates
+    DACER's arguments from an Optuna trial's ``params`` (:func:`sample_dacer_params`; ``--trial-id`` reloads them), with
+    the YAML entry's ``policy_kwargs`` updated by the drawn ``net_arch``. The other converters start from it.
     """
     hyperparams = sampled_params.copy()
     hyperparams["batch_size"] = 2 ** hyperparams.pop("batch_size_pow")
@@ -105,11 +102,8 @@ def convert_dsac_params(sampled_params: Params, policy_kwargs: Params | None = N
 
 def sample_dacerf_params(trial: optuna.Trial, *_: Any, policy_kwargs: Params | None = None) -> Params:
     """
-    RL Zoo's ``HYPERPARAMS_SAMPLER`` for DACERF, around the paper's values: the optimisation, Langevin and sampling
-    settings, network size, entropy regulator, actor-loss weighting, critics and normalised Langevin gradient.
-
-    :param trial: the Optuna trial (RL Zoo's other arguments, action dimension and so on, are not used)
-    :param policy_kwargs: the YAML entry's ``policy_kwargs``, kept apart from the drawn ``net_arch``
+    RL Zoo's ``HYPERPARAMS_SAMPLER`` for DACERF, around the paper's values (RL Zoo's arguments after ``trial`` are not
+    used); ``policy_kwargs`` are the YAML entry's, kept apart from the drawn ``net_arch``.
     """
     sampled = {
         **sample_optimisation_params(trial),
@@ -168,50 +162,6 @@ def default_config(algo: str, env_id: str) -> str | None:
     if algo in ALGORITHMS or (path.is_file() and env_id in yaml.safe_load(path.read_text())):
         return str(path)
     return None
-
-
-def is_database_url(storage: object) -> bool:
-    """Whether RL Zoo hands ``--storage`` to Optuna as a database URL (``postgresql://...``), not a journal file."""
-    return isinstance(storage, str) and "://" in storage and not storage.endswith(".log")
-
-
-@contextlib.contextmanager
-def database_studies() -> Iterator[None]:
-    """
-    Inside the block, a study that ``optuna.create_study`` opens on a database URL records Optuna's trial heartbeat
-    every ``SB3_DACERF_OPTUNA_HEARTBEAT`` seconds (60 by default, 0: none), so that the next trial started marks the
-    trials of killed workers FAIL; and workers that race to create Optuna's tables on a new database (``duplicate key
-    value violates unique constraint``) open the storage again after a short random pause.
-    """
-    value = os.environ.get("SB3_DACERF_OPTUNA_HEARTBEAT", "60")
-    try:
-        interval = int(value)
-    except ValueError:
-        interval = -1
-    if interval < 0:
-        raise ValueError(f"SB3_DACERF_OPTUNA_HEARTBEAT={value!r}: give a whole number of seconds (0 turns the heartbeat off).")
-    create_study = optuna.create_study
-
-    @functools.wraps(create_study)
-    def create_study_on_database(*args: Any, storage: Any = None, **kwargs: Any) -> optuna.Study:
-        if is_database_url(storage):
-            import sqlalchemy.exc
-
-            for attempt in range(5):
-                try:
-                    storage = optuna.storages.RDBStorage(storage, heartbeat_interval=interval or None)
-                    break
-                except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
-                    if attempt == 4:
-                        raise
-                    time.sleep(random.uniform(0.5, 2.0))
-        return create_study(*args, storage=storage, **kwargs)
-
-    optuna.create_study = create_study_on_database
-    try:
-        yield
-    finally:
-        optuna.create_study = create_study
 
 
 def masked_normalization(normalize_kwargs: Params) -> bool:
@@ -313,9 +263,7 @@ class ParallelTraining:
         logged = self.trainer.logger
         for key, value in logged.name_to_value.items():
             self.model.logger.record(key, value, exclude=logged.name_to_excluded.get(key))
-        logged.name_to_value.clear()
-        logged.name_to_count.clear()
-        logged.name_to_excluded.clear()
+        self.trainer.set_logger(Logger(folder=None, output_formats=[]))  # empty for the next round
 
     def start(self, gradient_steps: int, batch_size: int) -> None:
         """Give the idle trainer copies of the replay buffer, statistics and progress, and start a round in a thread."""
@@ -375,18 +323,12 @@ def _init(init: Callable[..., Any], self: Any, *args: Any, **kwargs: Any) -> Non
         self.config = default_config(self.algo, self.env_name.gym_id) or self.config
 
 
-def _preprocess_normalization(preprocess: Callable[..., Params], self: Any, hyperparams: Params) -> Params:
-    hyperparams = preprocess(self, hyperparams)
-    self.normalize_kwargs = dict(self.normalize_kwargs)  # RL Zoo's may be the entry's own dict, which it saves
-    self._sb3_dacerf_masked = masked_normalization(self.normalize_kwargs)
-    return hyperparams
-
-
 def _maybe_normalize(maybe_normalize: Callable[..., VecEnv], self: Any, env: VecEnv, eval_env: bool) -> VecEnv:
+    kwargs = dict(self.normalize_kwargs)  # (RL Zoo's may be the entry's own dict, which it saves)
     saved = os.path.join(os.path.dirname(self.trained_agent), self.env_name, "vecnormalize.pkl")
-    if not getattr(self, "_sb3_dacerf_masked", False) or os.path.exists(saved):
+    if not masked_normalization(kwargs) or os.path.exists(saved):
+        self.normalize_kwargs = kwargs
         return maybe_normalize(self, env, eval_env)  # (saved statistics load as the class that saved them)
-    kwargs = self.normalize_kwargs.copy()
     if eval_env:  # as RL Zoo's evaluation env: statistics copied from the training env, rewards as they are
         kwargs.update(norm_reward=False, training=False)
     if self.verbose > 0:
@@ -395,14 +337,48 @@ def _maybe_normalize(maybe_normalize: Callable[..., VecEnv], self: Any, env: Vec
 
 
 def _hyperparameters_optimization(optimize: Callable[..., Any], self: Any) -> None:
+    """
+    RL Zoo's ``-optimize``, its samplers keeping the YAML entry's ``policy_kwargs``. On a database ``--storage``
+    (``postgresql://...``), trials record Optuna's heartbeat every ``SB3_DACERF_OPTUNA_HEARTBEAT`` seconds (60 by
+    default, 0: none), so that the next trial started marks those of killed workers FAIL; and workers that race to
+    create Optuna's tables on a new database (``duplicate key value violates unique constraint``) try again.
+    """
     if self.algo in ALGORITHMS:
         from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
 
         # RL Zoo replaces the YAML's policy_kwargs with the sampled ones: merge instead, to keep the optimizer
         policy_kwargs = self._hyperparams.get("policy_kwargs")
         HYPERPARAMS_SAMPLER[self.algo] = functools.partial(SAMPLERS[self.algo], policy_kwargs=policy_kwargs)
-    with database_studies() if is_database_url(self.storage) else contextlib.nullcontext():
+    if not isinstance(self.storage, str) or "://" not in self.storage or self.storage.endswith(".log"):  # no database
+        return optimize(self)
+    value = os.environ.get("SB3_DACERF_OPTUNA_HEARTBEAT", "60")
+    try:
+        interval = int(value)
+    except ValueError:
+        interval = -1
+    if interval < 0:
+        raise ValueError(f"SB3_DACERF_OPTUNA_HEARTBEAT={value!r}: give a whole number of seconds (0 turns the heartbeat off).")
+    import sqlalchemy.exc
+
+    create_study = optuna.create_study
+
+    @functools.wraps(create_study)
+    def create_study_on_database(*args: Any, storage: Any = None, **kwargs: Any) -> optuna.Study:
+        for attempt in range(5):
+            try:
+                database = optuna.storages.RDBStorage(storage, heartbeat_interval=interval or None)
+                break
+            except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
+                if attempt == 4:
+                    raise
+                time.sleep(random.uniform(0.5, 2.0))
+        return create_study(*args, storage=database, **kwargs)
+
+    optuna.create_study = create_study_on_database
+    try:
         optimize(self)
+    finally:
+        optuna.create_study = create_study
 
 
 def _init_callback(init_callback: Callable[..., Any], self: Any) -> None:
@@ -458,14 +434,12 @@ def register(module: ModuleType) -> None:
         module.ALGOS.update(ALGORITHMS)
         choose_threads(sys.argv[1:])
     elif module.__name__ == "rl_zoo3.hyperparams_opt":
-        for algo, sampler in SAMPLERS.items():
-            module.HYPERPARAMS_SAMPLER.setdefault(algo, sampler)
+        module.HYPERPARAMS_SAMPLER.update(SAMPLERS)
         module.HYPERPARAMS_CONVERTER.update(CONVERTERS)
     elif module.__name__ == "rl_zoo3.exp_manager":
         _patch(
             module.ExperimentManager,
             __init__=_init,
-            _preprocess_normalization=_preprocess_normalization,
             _maybe_normalize=_maybe_normalize,
             hyperparameters_optimization=_hyperparameters_optimization,
         )
