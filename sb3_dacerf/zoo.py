@@ -1,12 +1,8 @@
 """
-RL Zoo plug-in: ``python -m rl_zoo3.train --algo dacerf|dacer|dsac --env <id>`` (and ``enjoy``, ``record_video``,
-``-optimize``) reads this package's ``hyperparams/<algo>.yml`` without ``--conf-file``, runs with one PyTorch thread
-unless ``--num-threads`` is given, accepts ``masked=True`` in a YAML entry's ``normalize`` (:class:`MaskedVecNormalize`),
-keeps database studies (``--storage postgresql://...``) alive when workers are killed or start together, and lets
-``ParallelTrainCallback`` train these algorithms (:class:`ParallelTraining`).
-
-The start-up hook ``sb3_dacerf_zoo_hook`` (installed by ``pip install .``) calls :func:`register` on each RL Zoo
-module as it is imported; without it, ``python -m sb3_dacerf.zoo train ...`` (or ``enjoy``, ...) does the same.
+RL Zoo plug-in (see the "RL Zoo" page): ``python -m rl_zoo3.train --algo dacerf|dacer|dsac --env <id>``, ``enjoy``,
+``record_video`` and ``-optimize`` with this package's ``hyperparams/<algo>.yml``. The start-up hook
+``sb3_dacerf_zoo_hook`` (``pip install .``) calls :func:`register` on each RL Zoo module as it is imported; without
+it, ``python -m sb3_dacerf.zoo train ...`` does the same.
 """
 
 import argparse
@@ -167,10 +163,7 @@ def default_config(algo: str, env_id: str) -> str | None:
 def masked_normalization(normalize_kwargs: Params) -> bool:
     """
     Take ``masked`` out of RL Zoo's ``normalize`` arguments (``normalize: "dict(norm_obs=True, norm_reward=False,
-    masked=True)"`` in a YAML entry): whether :class:`MaskedVecNormalize` normalises the observations instead of SB3's
-    ``VecNormalize``, which take the same other arguments.
-
-    :raises ValueError: ``masked`` that is not ``True`` or ``False``, or ``masked=True`` with ``norm_obs=False``
+    masked=True)"`` in a YAML entry): whether :class:`MaskedVecNormalize` normalises the observations, not ``VecNormalize``.
     """
     masked = normalize_kwargs.pop("masked", False)
     if not isinstance(masked, bool):
@@ -184,11 +177,7 @@ def masked_normalization(normalize_kwargs: Params) -> bool:
 
 
 def masked_rows(venv: VecEnv, env_id: str) -> tuple[int, int, int]:
-    """
-    The vehicle rows of a driving env's observation (``rows`` of :class:`MaskedVecNormalize`), from its config.
-
-    :raises ValueError: an env (``env_id``, for the message) without the driving envs' config
-    """
+    """The vehicle rows of a driving env's observation (``rows`` of :class:`MaskedVecNormalize`), from its config."""
     from sb3_dacerf.envs.driving.common.observation import vehicle_rows  # (highway-env: the driving extra)
 
     try:
@@ -202,16 +191,9 @@ def masked_rows(venv: VecEnv, env_id: str) -> tuple[int, int, int]:
 
 class ParallelTraining:
     """
-    RL Zoo's ``ParallelTrainCallback`` for an algorithm of :data:`ALGORITHMS`: a copy of the model, the *trainer*,
-    takes rounds of gradient steps in a thread while the model collects transitions.
-
-    At a rollout end with the trainer idle, the trainer's parameters (``α`` and the optimizers included), update count
-    and logged values go to the model; the trainer then gets copies of the replay buffer, of the ``VecNormalize``
-    statistics and of the model's progress, and starts a round. Meanwhile the model's ``train()`` does nothing and its
-    ``save()`` waits for the round, then writes the trainer with the model's progress. :meth:`close` gives the model
-    everything back. An error in the thread (a non-finite loss) is raised at the next rollout end.
-
-    :param model: the model that ``learn()`` trains
+    RL Zoo's ``ParallelTrainCallback`` for a ``model`` of :data:`ALGORITHMS`: a copy of it, the *trainer*, takes rounds
+    of gradient steps in a thread on copies of the replay buffer while the model collects transitions; between rounds,
+    the trainer's parameters go to the model. :meth:`close` gives the model its ``train()`` and ``save()`` back.
     """
 
     def __init__(self, model: OffPolicyAlgorithm):
@@ -338,10 +320,9 @@ def _maybe_normalize(maybe_normalize: Callable[..., VecEnv], self: Any, env: Vec
 
 def _hyperparameters_optimization(optimize: Callable[..., Any], self: Any) -> None:
     """
-    RL Zoo's ``-optimize``, its samplers keeping the YAML entry's ``policy_kwargs``. On a database ``--storage``
-    (``postgresql://...``), trials record Optuna's heartbeat every ``SB3_DACERF_OPTUNA_HEARTBEAT`` seconds (60 by
-    default, 0: none), so that the next trial started marks those of killed workers FAIL; and workers that race to
-    create Optuna's tables on a new database (``duplicate key value violates unique constraint``) try again.
+    RL Zoo's ``-optimize``, its samplers keeping the YAML entry's ``policy_kwargs``. On a database ``--storage``, trials
+    record Optuna's heartbeat every ``SB3_DACERF_OPTUNA_HEARTBEAT`` seconds (60 by default, 0: none), and workers that
+    race to create Optuna's tables on a new database try again.
     """
     if self.algo in ALGORITHMS:
         from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
@@ -352,12 +333,9 @@ def _hyperparameters_optimization(optimize: Callable[..., Any], self: Any) -> No
     if not isinstance(self.storage, str) or "://" not in self.storage or self.storage.endswith(".log"):  # no database
         return optimize(self)
     value = os.environ.get("SB3_DACERF_OPTUNA_HEARTBEAT", "60")
-    try:
-        interval = int(value)
-    except ValueError:
-        interval = -1
-    if interval < 0:
+    if not value.strip().isdecimal():
         raise ValueError(f"SB3_DACERF_OPTUNA_HEARTBEAT={value!r}: give a whole number of seconds (0 turns the heartbeat off).")
+    interval = int(value)
     import sqlalchemy.exc
 
     create_study = optuna.create_study
@@ -425,10 +403,8 @@ def choose_threads(argv: Sequence[str]) -> None:
 
 def register(module: ModuleType) -> None:
     """
-    Add DACERF, DACER and DSAC to one RL Zoo module (idempotent; other modules are left alone): ``rl_zoo3.utils``
-    (``ALGOS``, and :func:`choose_threads` from ``sys.argv``: every script imports it before it parses its arguments),
-    ``rl_zoo3.hyperparams_opt`` (samplers and converters), ``rl_zoo3.exp_manager`` (YAML files, masked normaliser,
-    database studies) or ``rl_zoo3.callbacks`` (``ParallelTrainCallback``).
+    Add DACERF, DACER and DSAC to an RL Zoo module (idempotent): ``rl_zoo3.utils`` (also :func:`choose_threads` from
+    ``sys.argv``), ``rl_zoo3.hyperparams_opt``, ``rl_zoo3.exp_manager`` or ``rl_zoo3.callbacks``; others are left alone.
     """
     if module.__name__ == "rl_zoo3.utils":
         module.ALGOS.update(ALGORITHMS)

@@ -1,7 +1,6 @@
 """
-The data regime of an off-policy run: ``S``, environment steps (transitions) per gradient step. GOPS, the DACER-F
-paper's trainer, has ``S = sample_batch_size / sample_interval``; SB3 has ``S = train_freq * n_envs / gradient_steps``.
-The documentation page "Data regime" works the paper's table out.
+The data regime of an off-policy run, ``S`` environment steps per gradient step: ``sample_batch_size / sample_interval``
+in GOPS (the DACER-F paper's trainer), ``train_freq * n_envs / gradient_steps`` in SB3 (see the "Data regime" page).
 """
 
 from fractions import Fraction
@@ -9,32 +8,20 @@ from math import ceil
 from typing import Any
 
 
-def parse_steps_per_gradient(value: str | float | Fraction) -> Fraction:
-    """
-    Read ``S``: a whole number (``"200"``), or below 1 the inverse of one (``"1/4"``, ``"0.25"``).
-
-    :raises ValueError: if it is not a positive number
-    """
-    try:
-        steps = Fraction(str(value))
-    except (ValueError, ZeroDivisionError):
-        raise ValueError(f"steps per gradient step {value!r} is not a number: pass e.g. 200, 1 or 1/4") from None
-    if steps <= 0:
-        raise ValueError(f"steps per gradient step must be positive, got {value}: pass e.g. 200, 1 or 1/4")
-    return steps
-
-
 def steps_per_gradient_kwargs(steps_per_gradient: str | float | Fraction, n_envs: int = 1) -> dict[str, int]:
     """
     SB3's ``train_freq`` and ``gradient_steps`` for ``S`` environment steps per gradient step with ``n_envs``
-    environments: for ``S >= 1`` (a multiple of ``n_envs``) ``train_freq=S // n_envs, gradient_steps=1``, as GOPS's
-    sampler; for ``S = 1/G`` ``train_freq=1, gradient_steps=G * n_envs``.
+    environments: for a whole ``S`` (a multiple of ``n_envs``) ``train_freq=S // n_envs, gradient_steps=1``, as GOPS's
+    sampler; for ``S = 1/G`` (``"1/4"``, ``0.25``) ``train_freq=1, gradient_steps=G * n_envs``.
 
-    :param steps_per_gradient: ``S`` (see :func:`parse_steps_per_gradient`)
-    :param n_envs: environments stepped together
     :raises ValueError: if ``S`` and ``n_envs`` do not fit, with the values that would
     """
-    steps = parse_steps_per_gradient(steps_per_gradient)
+    try:
+        steps = Fraction(str(steps_per_gradient))
+    except (ValueError, ZeroDivisionError):
+        raise ValueError(f"steps per gradient step {steps_per_gradient!r} is not a number: pass e.g. 200, 1 or 1/4") from None
+    if steps <= 0:
+        raise ValueError(f"steps per gradient step must be positive, got {steps_per_gradient}: pass e.g. 200, 1 or 1/4")
     if n_envs < 1:
         raise ValueError(f"n_envs must be at least 1, got {n_envs}")
     if steps >= 1:
@@ -75,15 +62,12 @@ def gops_off_serial_to_sb3(
     n_envs: int = 1,
 ) -> dict[str, Any]:
     """
-    The SB3 settings of a run of GOPS's off-policy serial trainer: the same transitions, gradient steps and replay
-    batches, in the same order (GOPS's warm-up samples the initial policy, SB3's random actions). GOPS fills its buffer
-    with ``buffer_warm_size`` transitions (whole sample batches), then each of ``max_iteration`` iterations samples
-    ``sample_batch_size`` transitions every ``sample_interval`` iterations and makes one gradient step on
-    ``replay_batch_size``; ``n_envs`` (GOPS's ``vector_env_num``) must divide ``sample_batch_size``.
+    The SB3 settings of a run of GOPS's off-policy serial trainer, named as GOPS names them (``n_envs``: its
+    ``vector_env_num``): the same transitions, gradient steps and replay batches, in the same order (GOPS's warm-up
+    samples the initial policy, SB3's random actions).
 
     :return: ``n_envs``, ``train_freq``, ``gradient_steps``, ``batch_size`` and ``learning_starts`` (the algorithm's
         settings), ``total_timesteps`` (for ``learn``), ``total_gradient_steps`` and ``steps_per_gradient`` (``S``)
-    :raises ValueError: if a count is not positive or ``n_envs`` does not divide ``sample_batch_size``
     """
     counts = dict(sample_batch_size=sample_batch_size, replay_batch_size=replay_batch_size, max_iteration=max_iteration)
     counts.update(sample_interval=sample_interval, n_envs=n_envs)

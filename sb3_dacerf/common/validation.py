@@ -31,12 +31,7 @@ def _is_real(value: Any) -> bool:
 
 @dataclass(frozen=True)
 class HyperparameterRule:
-    """
-    The valid values of a numeric hyper-parameter.
-
-    :param is_valid: Whether a finite number is valid
-    :param valid_range: The valid values in words, for the error message (e.g. ``"in (0, 1]"``)
-    """
+    """The valid values of a numeric hyper-parameter: ``is_valid`` of a finite number, and in words (``"in (0, 1]"``)."""
 
     is_valid: Callable[[Any], bool]
     valid_range: str
@@ -92,9 +87,8 @@ def resolve_target_entropy(target_entropy: Any, auto: float) -> float:
 def initial_ent_coef(ent_coef: Any, auto: float, valid_values: str) -> float:
     """
     The initial temperature ``α`` that SB3's ``ent_coef`` asks for: ``auto`` for ``"auto"`` (learned), ``x`` for
-    ``"auto_x"`` (learned, from ``x > 0``), the number itself for a number ``>= 0`` (fixed).
-
-    :param valid_values: the end of the error message for anything else: the valid values, as the algorithm describes them
+    ``"auto_x"`` (learned, from ``x > 0``), the number itself for a number ``>= 0`` (fixed); else a ``ValueError``
+    ending with ``valid_values``.
     """
     error = ValueError(f"Invalid ent_coef={ent_coef!r}: it must be {valid_values}")
     if isinstance(ent_coef, str):

@@ -1,9 +1,7 @@
 """
-Observation normalisation for observations that hold a table of optional rows, such as the driving scenarios'
-surrounding vehicles (one row per vehicle slot, its last entry 1 for a vehicle and 0 for an empty slot). SB3's
-``VecNormalize`` keeps statistics per entry, so an empty slot that training always saw filled lands thousands of
-standard deviations away (clipped to ``±clip_obs``); :class:`MaskedVecNormalize` keeps its meaning at any number of
-vehicles.
+Normalisation of observations that hold a table of optional rows, such as the driving scenarios' vehicle slots: SB3's
+``VecNormalize`` clips an empty slot that training always saw filled to ``±clip_obs``, :class:`MaskedVecNormalize`
+gives it zeros.
 """
 
 from __future__ import annotations
@@ -28,13 +26,9 @@ def _table(array: np.ndarray, rows: tuple[int, int, int]) -> np.ndarray:
 
 class MaskedRowsRunningMeanStd(RunningMeanStd):
     """
-    SB3's running mean and variance of a flat observation whose table entries (see :class:`MaskedVecNormalize`) get
-    the statistics of the present rows (mask > 0.5), pooled over the rows: entry ``start + i * size + j`` has those of
-    feature ``j``, kept in ``row_rms``.
-
-    :param shape: the observation's shape, ``(n,)``
-    :param rows: ``(start, count, size)``: the table's first index, number of rows and row length
-    :param epsilon: the initial count (SB3's)
+    SB3's running mean and variance of a flat observation of shape ``shape``, whose table of ``rows`` (see
+    :class:`MaskedVecNormalize`) gets the statistics of the present rows (mask > 0.5) pooled over the rows: entry
+    ``start + i * size + j`` has those of feature ``j``, kept in ``row_rms``.
     """
 
     def __init__(self, shape: tuple[int, ...], rows: tuple[int, int, int], epsilon: float = 1e-4):
@@ -78,30 +72,23 @@ class MaskedRowsRunningMeanStd(RunningMeanStd):
 
 class MaskedVecNormalize(VecNormalize):
     """
-    SB3's ``VecNormalize`` for flat observations that hold a table of ``count`` optional rows of ``size`` entries from
-    index ``start``, the last entry of each row its mask (1: present, 0: empty). A present row's entries are normalised
-    with the mean and variance of that feature over the present rows of every slot, its mask stays 1; an empty row
-    becomes zeros. The other entries are normalised as ``VecNormalize`` does.
+    SB3's ``VecNormalize`` for flat ``Box`` observations that hold a table of ``count`` optional rows of ``size``
+    entries from index ``start``, each row's last entry its mask (1: present, 0: empty). A present row's entries are
+    normalised with the statistics of that feature over the present rows of every slot, its mask stays 1; an empty row
+    becomes zeros; the other entries are normalised as ``VecNormalize`` does. It saves and loads as ``VecNormalize``
+    (``VecNormalize.load`` gives back this class); evaluation envs that copy its statistics must be of this class too.
 
-    It saves and loads as ``VecNormalize`` does (``VecNormalize.load`` gives back this class). Evaluation envs that
-    copy the statistics (SB3's ``sync_envs_normalization``) must be of this class too. The arguments after ``rows``
-    (``training``, ``norm_obs``, ``norm_reward``, ``clip_obs``, ...) are ``VecNormalize``'s.
-
-    :param venv: the vectorized environment, with a flat ``Box`` observation space
-    :param rows: ``(start, count, size)`` with ``count >= 0`` and ``size >= 2``; for the driving scenarios
+    :param venv: the vectorized environment
+    :param rows: ``(start, count, size)``; for the driving scenarios
         :func:`sb3_dacerf.envs.driving.common.observation.vehicle_rows` gives it
-    :raises ValueError: ``rows`` that do not fit the observation space, or a space that is not a flat ``Box``
+    :param kwargs: ``VecNormalize``'s arguments (``training``, ``norm_obs``, ``norm_reward``, ``clip_obs``, ...)
     """
 
     def __init__(self, venv: VecEnv, rows: Sequence[int], **kwargs: Any):
         space = venv.observation_space
         if not isinstance(space, spaces.Box) or len(space.shape) != 1:
             raise ValueError(f"MaskedVecNormalize needs a flat Box observation space, got {space}: use VecNormalize")
-        if (
-            isinstance(rows, (str, bytes))
-            or len(rows) != 3
-            or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in rows)
-        ):
+        if len(rows) != 3 or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in rows):
             raise ValueError(f"rows must be (start, count, size), three integers, got {rows!r}")
         start, count, size = (int(v) for v in rows)
         if start < 0 or count < 0 or size < 2 or start + count * size > space.shape[0]:
