@@ -130,10 +130,7 @@ def sample_dacer_params(trial: optuna.Trial, *_: Any, policy_kwargs: Params | No
 
 
 def sample_dsac_params(trial: optuna.Trial, *_: Any, policy_kwargs: Params | None = None) -> Params:
-    """
-    RL Zoo's ``HYPERPARAMS_SAMPLER`` for DSAC, as :func:`sample_dacerf_params`, around the authors' values: the
-    optimisation settings, network size, the temperature's start and learning rate and the running-σ coefficient.
-    """
+    """RL Zoo's ``HYPERPARAMS_SAMPLER`` for DSAC, as :func:`sample_dacerf_params`, around the authors' values."""
     sampled = {
         **sample_optimisation_params(trial),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCH)),
@@ -207,7 +204,6 @@ class ParallelTraining:
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.has_news = False  # whether the trainer has trained since the model last received its parameters
-        self.closed = False
         self._instance_methods: Params = {name: vars(model)[name] for name in ("train", "save") if name in vars(model)}
         model.train = lambda gradient_steps, batch_size=64: None  # type: ignore[method-assign,misc]
         model.save = self.save  # type: ignore[method-assign]
@@ -271,41 +267,30 @@ class ParallelTraining:
         self.trainer.save(*args, **kwargs)
 
     def close(self) -> None:
-        """Wait for the last round; give the model the trainer's parameters and its own ``train()`` and ``save()`` back."""
-        if self.closed:
-            return
-        self.closed = True
+        """Wait for the last round; give the model the trainer's parameters and its ``train()``, ``save()`` back (idempotent)."""
         for name in ("train", "save"):
-            del vars(self.model)[name]
+            vars(self.model).pop(name, None)
         vars(self.model).update(self._instance_methods)
         self.wait()
         self.exchange()
 
 
-def _wrap(original: Callable[..., Any], wrapper: Callable[..., Any]) -> Callable[..., Any]:
-    @functools.wraps(original)
-    def method(self: Any, *args: Any, **kwargs: Any) -> Any:
-        return wrapper(original, self, *args, **kwargs)
-
-    return method
-
-
 def _patch(cls: type, **wrappers: Callable[..., Any]) -> None:
-    """Wrap methods of an RL Zoo class, once: ``cls.<name>(self, ...)`` calls ``wrappers[name](original, self, ...)``."""
+    """Wrap methods of an RL Zoo class, once: ``cls.<name>(self, ...)`` calls ``wrappers[name](self, original, ...)``."""
     if getattr(cls, "_sb3_dacerf_patched", False):
         return
     for name, wrapper in wrappers.items():
-        setattr(cls, name, _wrap(getattr(cls, name), wrapper))
+        setattr(cls, name, functools.partialmethod(wrapper, getattr(cls, name)))
     cls._sb3_dacerf_patched = True  # type: ignore[attr-defined]
 
 
-def _init(init: Callable[..., Any], self: Any, *args: Any, **kwargs: Any) -> None:
+def _init(self: Any, init: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
     init(self, *args, **kwargs)
     if inspect.signature(init).bind(self, *args, **kwargs).arguments.get("config") is None:  # no --conf-file
         self.config = default_config(self.algo, self.env_name.gym_id) or self.config
 
 
-def _maybe_normalize(maybe_normalize: Callable[..., VecEnv], self: Any, env: VecEnv, eval_env: bool) -> VecEnv:
+def _maybe_normalize(self: Any, maybe_normalize: Callable[..., VecEnv], env: VecEnv, eval_env: bool) -> VecEnv:
     kwargs = dict(self.normalize_kwargs)  # (RL Zoo's may be the entry's own dict, which it saves)
     saved = os.path.join(os.path.dirname(self.trained_agent), self.env_name, "vecnormalize.pkl")
     if not masked_normalization(kwargs) or os.path.exists(saved):
@@ -318,7 +303,7 @@ def _maybe_normalize(maybe_normalize: Callable[..., VecEnv], self: Any, env: Vec
     return MaskedVecNormalize(env, rows=masked_rows(env, self.env_name.gym_id), **kwargs)
 
 
-def _hyperparameters_optimization(optimize: Callable[..., Any], self: Any) -> None:
+def _hyperparameters_optimization(self: Any, optimize: Callable[..., Any]) -> None:
     """
     RL Zoo's ``-optimize``, its samplers keeping the YAML entry's ``policy_kwargs``. On a database ``--storage``, trials
     record Optuna's heartbeat every ``SB3_DACERF_OPTUNA_HEARTBEAT`` seconds (60 by default, 0: none), and workers that
@@ -359,7 +344,7 @@ def _hyperparameters_optimization(optimize: Callable[..., Any], self: Any) -> No
         optuna.create_study = create_study
 
 
-def _init_callback(init_callback: Callable[..., Any], self: Any) -> None:
+def _init_callback(self: Any, init_callback: Callable[..., Any]) -> None:
     if not any(isinstance(self.model, algorithm) for algorithm in ALGORITHMS.values()):
         return init_callback(self)
     training = self._sb3_dacerf_parallel_training = ParallelTraining(self.model)
@@ -367,7 +352,7 @@ def _init_callback(init_callback: Callable[..., Any], self: Any) -> None:
     self._model, self.model_class, self.batch_size = training.trainer, type(self.model), training.trainer.batch_size
 
 
-def _on_rollout_end(on_rollout_end: Callable[..., Any], self: Any) -> None:
+def _on_rollout_end(self: Any, on_rollout_end: Callable[..., Any]) -> None:
     training: ParallelTraining | None = vars(self).get("_sb3_dacerf_parallel_training")
     if training is None:
         return on_rollout_end(self)
@@ -378,7 +363,7 @@ def _on_rollout_end(on_rollout_end: Callable[..., Any], self: Any) -> None:
             training.start(self.gradient_steps, self.batch_size)
 
 
-def _on_training_end(on_training_end: Callable[..., Any], self: Any) -> None:
+def _on_training_end(self: Any, on_training_end: Callable[..., Any]) -> None:
     training: ParallelTraining | None = vars(self).get("_sb3_dacerf_parallel_training")
     if training is None:
         return on_training_end(self)

@@ -15,8 +15,6 @@ from gymnasium import spaces
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
-__all__ = ["MaskedRowsRunningMeanStd", "MaskedVecNormalize"]
-
 
 def _table(array: np.ndarray, rows: tuple[int, int, int]) -> np.ndarray:
     """The table of ``array``'s last axis, shape ``(..., count, size)``."""
