@@ -62,10 +62,7 @@ def sample_optimisation_params(trial: optuna.Trial) -> Params:
 
 
 def convert_dacer_params(sampled_params: Params, policy_kwargs: Params | None = None) -> Params:
-    """
-    DACER's arguments from an Optuna trial's ``params`` (:func:`sample_dacer_params`; ``--trial-id`` reloads them), with
-    the YAML entry's ``policy_kwargs`` updated by the drawn ``net_arch``. The other converters start from it.
-    """
+    """DACER's arguments from an Optuna trial's ``params`` (``--trial-id``), updating the YAML entry's ``policy_kwargs``."""
     hyperparams = sampled_params.copy()
     hyperparams["batch_size"] = 2 ** hyperparams.pop("batch_size_pow")
     hyperparams["policy_kwargs"] = {**(policy_kwargs or {}), "net_arch": NET_ARCH[hyperparams.pop("net_arch")]}
@@ -97,10 +94,7 @@ def convert_dsac_params(sampled_params: Params, policy_kwargs: Params | None = N
 
 
 def sample_dacerf_params(trial: optuna.Trial, *_: Any, policy_kwargs: Params | None = None) -> Params:
-    """
-    RL Zoo's ``HYPERPARAMS_SAMPLER`` for DACERF, around the paper's values (RL Zoo's arguments after ``trial`` are not
-    used); ``policy_kwargs`` are the YAML entry's, kept apart from the drawn ``net_arch``.
-    """
+    """RL Zoo's ``HYPERPARAMS_SAMPLER`` for DACERF, around the paper's values, keeping the YAML entry's ``policy_kwargs``."""
     sampled = {
         **sample_optimisation_params(trial),
         "langevin_steps": trial.suggest_int("langevin_steps", 5, 40, step=5),
@@ -373,10 +367,7 @@ def _on_training_end(self: Any, on_training_end: Callable[..., Any]) -> None:
 
 
 def choose_threads(argv: Sequence[str]) -> None:
-    """
-    Give PyTorch one thread when the RL Zoo arguments ``argv`` run one of :data:`ALGORITHMS` (``--algo``) and do not
-    choose the number (``--num-threads``, which RL Zoo applies): these networks are too small to gain from more.
-    """
+    """Give PyTorch one thread when RL Zoo's arguments ``argv`` run one of :data:`ALGORITHMS` without ``--num-threads``."""
     parser = argparse.ArgumentParser(add_help=False, exit_on_error=False)
     parser.add_argument("--algo")
     parser.add_argument("--num-threads")

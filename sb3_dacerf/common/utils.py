@@ -19,9 +19,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     .tmp.<suffix>`` in ``path``'s folder, which is created if needed); when it succeeds the file is synced to disk and
     renamed over ``path`` (a symbolic link is written through), else it is deleted and ``path`` is left as it was.
     """
-    path = Path(path)
-    if path.is_symlink():
-        path = Path(os.path.realpath(path))
+    path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.is_file():
         mode = os.stat(path).st_mode & 0o7777

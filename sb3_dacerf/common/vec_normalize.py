@@ -6,6 +6,7 @@ gives it zeros.
 
 from __future__ import annotations
 
+import copy
 import numbers
 from collections.abc import Sequence
 from typing import Any
@@ -50,10 +51,7 @@ class MaskedRowsRunningMeanStd(RunningMeanStd):
         self._spread_row_statistics()
 
     def copy(self) -> MaskedRowsRunningMeanStd:
-        new = MaskedRowsRunningMeanStd(self.mean.shape, self.rows)
-        new.mean, new.var, new.count = self.mean.copy(), self.var.copy(), float(self.count)
-        new.row_rms = self.row_rms.copy()
-        return new
+        return copy.deepcopy(self)
 
     def combine(self, other: RunningMeanStd) -> None:
         """:raises ValueError: statistics of another kind or layout than ``MaskedRowsRunningMeanStd`` of the same ``rows``"""
