@@ -8,7 +8,6 @@ from stable_baselines3 import SAC
 
 from sb3_dacerf.common.regime import (
     gops_off_serial_to_sb3,
-    parse_steps_per_gradient,
     steps_per_gradient_kwargs,
     transitions_per_rollout,
 )
@@ -30,7 +29,7 @@ def test_steps_per_gradient_kwargs(steps, n_envs, expected):
     kwargs = steps_per_gradient_kwargs(steps, n_envs)
     assert kwargs == expected
     # S = train_freq * n_envs / gradient_steps
-    assert Fraction(kwargs["train_freq"] * n_envs, kwargs["gradient_steps"]) == parse_steps_per_gradient(steps)
+    assert Fraction(kwargs["train_freq"] * n_envs, kwargs["gradient_steps"]) == Fraction(str(steps))
     assert transitions_per_rollout(steps, n_envs) == kwargs["train_freq"] * n_envs
     assert transitions_per_rollout(None, n_envs) == n_envs
 

@@ -2,19 +2,12 @@
 
 import torch as th
 
-RAD_INSTALL_HINT = "pip install pytorch-rad  (or: pip install 'sb3_dacerf[rad]')"
-
 
 def get_optimizer_class(optimizer_class: type[th.optim.Optimizer] | str) -> type[th.optim.Optimizer]:
     """
-    Resolve an optimizer given as a class or by name.
-
-    Names are case-insensitive: ``"Adam"``, ``"AdamW"``, ``"SGD"``, ``"RMSprop"`` (from ``torch.optim``)
-    and ``"RAD"``, the relativistic adaptive gradient descent of the DACER-F paper, taken from the
-    authors' ``pytorch-rad`` package (an optional dependency).
-
-    :param optimizer_class: An optimizer class (returned unchanged) or its name
-    :return: The optimizer class
+    An optimizer class, given as itself or by its case-insensitive name: ``"Adam"``, ``"AdamW"``, ``"SGD"``,
+    ``"RMSprop"`` (``torch.optim``) or ``"RAD"``, the DACER-F paper's relativistic adaptive gradient descent from its
+    authors' optional ``pytorch-rad`` package.
     """
     if not isinstance(optimizer_class, str):
         return optimizer_class
@@ -23,12 +16,13 @@ def get_optimizer_class(optimizer_class: type[th.optim.Optimizer] | str) -> type
         try:
             from rad.optim import RAD
         except ImportError as error:
-            raise ImportError(f"The RAD optimizer needs the pytorch-rad package: {RAD_INSTALL_HINT}") from error
+            hint = "pip install pytorch-rad  (or: pip install 'sb3_dacerf[rad]')"
+            raise ImportError(f"The RAD optimizer needs the pytorch-rad package: {hint}") from error
         return RAD
-    torch_optimizers = {cls.lower(): getattr(th.optim, cls) for cls in ("Adam", "AdamW", "SGD", "RMSprop")}
-    if name not in torch_optimizers:
-        raise ValueError(
-            f"Unknown optimizer {optimizer_class!r}: use one of 'Adam', 'AdamW', 'SGD', 'RMSprop', 'RAD' "
-            "or pass an optimizer class (e.g. optimizer_class=torch.optim.Adam)"
-        )
-    return torch_optimizers[name]
+    for torch_name in ("Adam", "AdamW", "SGD", "RMSprop"):
+        if name == torch_name.lower():
+            return getattr(th.optim, torch_name)
+    raise ValueError(
+        f"Unknown optimizer {optimizer_class!r}: use one of 'Adam', 'AdamW', 'SGD', 'RMSprop', 'RAD' "
+        "or pass an optimizer class (e.g. optimizer_class=torch.optim.Adam)"
+    )

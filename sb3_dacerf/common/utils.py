@@ -12,31 +12,22 @@ from typing import Any
 import numpy as np
 
 
-def _new_file_mode() -> int:
-    """Permissions of a file created with ``open(path, "w")``: 0o666 less the process's umask."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
-    Write a file all at once or not at all: the block writes to the yielded temporary path, in the same folder as
-    ``path``; when the block succeeds the temporary file is synced to disk and renamed over ``path``
-    (``os.replace``, atomic on POSIX and Windows), else it is deleted and ``path`` is left as it was.
-    A full disk or an interrupted save therefore never destroys the previous file.
-
-    :param path: The file to write (its folder is created if needed; a symbolic link is written through)
-    :return: The temporary path to write to (it keeps ``path``'s suffix: ``.<name>.<random>.tmp.<suffix>``)
+    Write a file all at once or not at all: the block writes to the yielded temporary path (``.<name>.<pid>.<random>
+    .tmp.<suffix>`` in ``path``'s folder, which is created if needed); when it succeeds the file is synced to disk and
+    renamed over ``path`` (a symbolic link is written through), else it is deleted and ``path`` is left as it was.
     """
-    path = Path(path)
-    if path.is_symlink():
-        path = Path(os.path.realpath(path))
+    path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
-    mode = (os.stat(path).st_mode & 0o7777) if path.is_file() else _new_file_mode()
+    if path.is_file():
+        mode = os.stat(path).st_mode & 0o7777
+    else:  # as open(path, "w") would create it
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o666 & ~umask
     remove_stale_temporaries(path)
-    # The writer's process id in the name: remove_stale_temporaries deletes the files of writers no longer running
     descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.{os.getpid()}.", suffix=f".tmp{path.suffix}")
     os.close(descriptor)
     temporary_path = Path(temporary)
@@ -53,10 +44,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> None:
-    """
-    Delete the temporary files that :func:`atomic_path` writes for ``path`` and whose writer process no longer runs
-    (a save killed before it could clean up); those of running writers are kept.
-    """
+    """Delete the temporary files of :func:`atomic_path` for ``path`` whose writer process no longer runs (a killed save)."""
     path = Path(path)
     name = re.compile(rf"\.{re.escape(path.stem)}\.(\d+)\.[^.]+\.tmp{re.escape(path.suffix)}")
     for temporary in path.parent.glob(f".{glob.escape(path.stem)}.*.tmp{glob.escape(path.suffix)}"):
@@ -71,16 +59,13 @@ def _process_runs(pid: int) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
-        return True  # another user's process
+    except PermissionError:  # another user's process
+        pass
     return True
 
 
 def save_path_with_suffix(path: str | os.PathLike, suffix: str) -> Path:
-    """
-    The file SB3's ``save``/``save_to_pkl`` write for ``path``: ``path`` with ``.<suffix>`` appended when it has
-    no suffix (``model`` -> ``model.zip``), ``<path>_2`` when that is a folder.
-    """
+    """The file SB3's ``save``/``save_to_pkl`` write for ``path``: with ``.<suffix>`` if it has none, ``<path>_2`` if a folder."""
     path = Path(path)
     if path.suffix == "":
         path = Path(f"{path}.{suffix}")
@@ -89,32 +74,23 @@ def save_path_with_suffix(path: str | os.PathLike, suffix: str) -> Path:
     return path
 
 
-def non_finite_entries(observation: Any, name: str = "obs", limit: int = 5) -> str | None:
+def non_finite_entries(observation: Any, limit: int = 5) -> str | None:
     """
-    Describe the NaN and infinite entries of an observation, e.g. ``obs[0, 1] = nan, obs['image'][2] = inf``.
-
-    :param observation: An array, or a dict of arrays (Dict observation spaces); integer arrays are always finite
-    :param name: What to call the observation in the description
-    :param limit: At most that many entries are listed, then how many more there are
-    :return: The description, or ``None`` when every entry is finite
+    The NaN and infinite entries of an observation, an array or a dict of arrays, e.g. ``obs[0, 1] = nan,
+    obs['image'][2] = inf`` (at most ``limit``, then how many more), or ``None`` when every entry is finite.
     """
-    items = observation.items() if isinstance(observation, dict) else [(None, observation)]
     listed: list[str] = []
     count = 0
-    for key, value in items:
+    for key, value in observation.items() if isinstance(observation, dict) else [(None, observation)]:
         array = np.asarray(value)
         if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.complexfloating)):
-            continue
-        bad = ~np.isfinite(array)
-        if not bad.any():
-            continue
-        indices = np.argwhere(bad)
+            continue  # integers are always finite
+        indices = np.argwhere(~np.isfinite(array))
         count += len(indices)
-        prefix = name if key is None else f"{name}[{key!r}]"
+        prefix = "obs" if key is None else f"obs[{key!r}]"
         for index in indices[: max(limit - len(listed), 0)]:
             entry = f"[{', '.join(str(i) for i in index)}]" if array.ndim > 0 else ""
             listed.append(f"{prefix}{entry} = {array[tuple(index)]}")
     if count == 0:
         return None
-    more = f" and {count - len(listed)} more" if count > len(listed) else ""
-    return ", ".join(listed) + more
+    return ", ".join(listed) + (f" and {count - len(listed)} more" if count > len(listed) else "")

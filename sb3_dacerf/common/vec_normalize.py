@@ -1,51 +1,39 @@
 """
-Observation normalisation for observations that hold a table of optional rows, such as the driving scenarios'
-surrounding vehicles (one row per vehicle slot, nearest first, a last entry 1 for a vehicle and 0 for an empty slot).
-
-SB3's ``VecNormalize`` keeps a mean and a variance per observation entry. Where a slot held a vehicle at every step of
-training, its mask entry has a variance of 0 and its heading cosine one near 0: an empty slot (all zeros), which
-fewer vehicles give, is then thousands of standard deviations away and is clipped to ``±clip_obs``, values the policy
-never saw. :class:`MaskedVecNormalize` normalises the rows' entries with statistics of the present rows only,
-pooled over the slots, passes the mask as it is (0 or 1), and gives an empty row zeros: its observation has the same
-meaning and range at any number of vehicles.
-
-Example::
-
-    from sb3_dacerf.envs.driving.common.observation import vehicle_rows
-
-    venv = DummyVecEnv([lambda: gym.make("DACERF-Multilane-v0", density="random")])
-    venv = MaskedVecNormalize(venv, rows=vehicle_rows(venv.get_attr("config")[0]), norm_reward=False)
+Normalisation of observations that hold a table of optional rows, such as the driving scenarios' vehicle slots: SB3's
+``VecNormalize`` clips an empty slot that training always saw filled to ``±clip_obs``, :class:`MaskedVecNormalize`
+gives it zeros.
 """
 
 from __future__ import annotations
 
+import copy
 import numbers
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
-__all__ = ["MaskedRowsRunningMeanStd", "MaskedVecNormalize"]
+
+def _table(array: np.ndarray, rows: tuple[int, int, int]) -> np.ndarray:
+    """The table of ``array``'s last axis, shape ``(..., count, size)``."""
+    start, count, size = rows
+    return array[..., start : start + count * size].reshape(*array.shape[:-1], count, size)
 
 
 class MaskedRowsRunningMeanStd(RunningMeanStd):
     """
-    SB3's running mean and variance of a flat observation, where the entries of a table of rows (see
-    :class:`MaskedVecNormalize`) get the statistics of the present rows (mask > 0.5), pooled over all rows: entry
-    ``start + i * size + j`` has the mean and variance of feature ``j`` over every present row seen.
-
-    :param shape: the observation's shape, ``(n,)``
-    :param rows: ``(start, count, size)``: the table's first index, number of rows and row length
-    :param epsilon: the initial count (SB3's)
+    SB3's running mean and variance of a flat observation of shape ``shape``, whose table of ``rows`` (see
+    :class:`MaskedVecNormalize`) gets the statistics of the present rows (mask > 0.5) pooled over the rows: entry
+    ``start + i * size + j`` has those of feature ``j``, kept in ``row_rms``.
     """
 
     def __init__(self, shape: tuple[int, ...], rows: tuple[int, int, int], epsilon: float = 1e-4):
         super().__init__(epsilon=epsilon, shape=shape)
         self.rows = rows
         self.row_rms = RunningMeanStd(epsilon=epsilon, shape=(rows[2],))
-        """The statistics of each row feature over the present rows."""
         self._spread_row_statistics()
 
     def _spread_row_statistics(self) -> None:
@@ -54,28 +42,19 @@ class MaskedRowsRunningMeanStd(RunningMeanStd):
         self.var[start : start + count * size] = np.tile(self.row_rms.var, count)
 
     def update(self, arr: np.ndarray) -> None:
-        """
-        :param arr: a batch of observations, shape ``(batch, n)``
-        """
+        """:param arr: a batch of observations, shape ``(batch, n)``"""
         super().update(arr)  # every entry; the table's entries are then replaced by the present rows' statistics
-        start, count, size = self.rows
-        table = arr[:, start : start + count * size].reshape(-1, size)
+        table = _table(arr, self.rows).reshape(-1, self.rows[2])
         present = table[table[:, -1] > 0.5]
         if len(present):
             self.row_rms.update(present)
         self._spread_row_statistics()
 
     def copy(self) -> MaskedRowsRunningMeanStd:
-        new = MaskedRowsRunningMeanStd(self.mean.shape, self.rows)
-        new.mean, new.var, new.count = self.mean.copy(), self.var.copy(), float(self.count)
-        new.row_rms = self.row_rms.copy()
-        return new
+        return copy.deepcopy(self)
 
     def combine(self, other: RunningMeanStd) -> None:
-        """
-        :param other: statistics of the same layout (a :class:`MaskedRowsRunningMeanStd` with the same ``rows``)
-        :raises ValueError: statistics of another kind or layout
-        """
+        """:raises ValueError: statistics of another kind or layout than ``MaskedRowsRunningMeanStd`` of the same ``rows``"""
         if not isinstance(other, MaskedRowsRunningMeanStd) or other.rows != self.rows:
             raise ValueError(
                 f"Cannot combine the statistics of rows {self.rows} with {type(other).__name__}"
@@ -89,48 +68,23 @@ class MaskedRowsRunningMeanStd(RunningMeanStd):
 
 class MaskedVecNormalize(VecNormalize):
     """
-    SB3's ``VecNormalize`` for flat observations that hold a table of optional rows: ``count`` rows of ``size``
-    entries from index ``start``, the last entry of each row its mask (1: present, 0: empty). The other entries are
-    normalised as ``VecNormalize`` does. A present row's entries are normalised with the mean and variance of that
-    feature over the present rows of every slot, its mask stays 1; an empty row becomes zeros, its mask 0. So the
-    normalised observation keeps its range whatever the number of present rows, also at counts training never saw.
+    SB3's ``VecNormalize`` for flat ``Box`` observations that hold a table of ``count`` optional rows of ``size``
+    entries from index ``start``, each row's last entry its mask (1: present, 0: empty). A present row's entries are
+    normalised with the statistics of that feature over the present rows of every slot, its mask stays 1; an empty row
+    becomes zeros; the other entries are normalised as ``VecNormalize`` does. It saves and loads as ``VecNormalize``
+    (``VecNormalize.load`` gives back this class); evaluation envs that copy its statistics must be of this class too.
 
-    It saves and loads as ``VecNormalize`` does (``VecNormalize.load`` gives back this class). Evaluation envs that
-    copy the statistics (SB3's ``sync_envs_normalization``) must be wrapped in this class too.
-
-    :param venv: the vectorized environment, with a flat ``Box`` observation space
-    :param rows: ``(start, count, size)``: the table's first index, number of rows (>= 0) and row length (>= 2); for
-        the driving scenarios :func:`sb3_dacerf.envs.driving.common.observation.vehicle_rows` gives it
-    :param training: whether to update the statistics
-    :param norm_obs: whether to normalise observations
-    :param norm_reward: whether to normalise rewards
-    :param clip_obs: the bound of normalised observations
-    :param clip_reward: the bound of normalised rewards
-    :param gamma: the discount of the return statistics (reward normalisation)
-    :param epsilon: added to the variances
-    :raises ValueError: ``rows`` that do not fit the observation space, or a space that is not a flat ``Box``
+    :param venv: the vectorized environment
+    :param rows: ``(start, count, size)``; for the driving scenarios
+        :func:`sb3_dacerf.envs.driving.common.observation.vehicle_rows` gives it
+    :param kwargs: ``VecNormalize``'s arguments (``training``, ``norm_obs``, ``norm_reward``, ``clip_obs``, ...)
     """
 
-    def __init__(
-        self,
-        venv: VecEnv,
-        rows: Sequence[int],
-        training: bool = True,
-        norm_obs: bool = True,
-        norm_reward: bool = True,
-        clip_obs: float = 10.0,
-        clip_reward: float = 10.0,
-        gamma: float = 0.99,
-        epsilon: float = 1e-8,
-    ):
+    def __init__(self, venv: VecEnv, rows: Sequence[int], **kwargs: Any):
         space = venv.observation_space
         if not isinstance(space, spaces.Box) or len(space.shape) != 1:
             raise ValueError(f"MaskedVecNormalize needs a flat Box observation space, got {space}: use VecNormalize")
-        if (
-            isinstance(rows, (str, bytes))
-            or len(rows) != 3
-            or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in rows)
-        ):
+        if len(rows) != 3 or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in rows):
             raise ValueError(f"rows must be (start, count, size), three integers, got {rows!r}")
         start, count, size = (int(v) for v in rows)
         if start < 0 or count < 0 or size < 2 or start + count * size > space.shape[0]:
@@ -139,20 +93,16 @@ class MaskedVecNormalize(VecNormalize):
                 "a table of count rows of size >= 2 entries (the last one the mask) from index start must end at "
                 f"or before {space.shape[0]}"
             )
-        super().__init__(venv, training, norm_obs, norm_reward, clip_obs, clip_reward, gamma, epsilon)
+        super().__init__(venv, **kwargs)
         self.rows = (start, count, size)
         if self.norm_obs:
             self.obs_rms = MaskedRowsRunningMeanStd(space.shape, self.rows)  # type: ignore[assignment]  # (VecNormalize types it for Dict spaces too)
 
-    def _rows_view(self, obs: np.ndarray) -> np.ndarray:
-        start, count, size = self.rows
-        return obs[..., start : start + count * size].reshape(*obs.shape[:-1], count, size)
-
     def _mask_rows(self, obs: np.ndarray, transformed: np.ndarray) -> np.ndarray:
         """``transformed`` with each row of ``obs``'s table zeroed where it is empty and its mask entry set to 0 / 1."""
         start, count, size = self.rows
-        present = self._rows_view(np.asarray(obs))[..., -1:] > 0.5
-        table = np.where(present, self._rows_view(transformed), 0.0)
+        present = _table(np.asarray(obs), self.rows)[..., -1:] > 0.5
+        table = np.where(present, _table(transformed, self.rows), 0.0)
         table[..., -1] = present[..., 0]
         transformed = np.array(transformed, copy=True)
         transformed[..., start : start + count * size] = table.reshape(*transformed.shape[:-1], count * size)
