@@ -335,7 +335,7 @@ class EnsembleCritic(BaseModel):
         input_dim = features_dim + get_action_dim(action_space)
         # Each member network as create_mlp builds it (the same random draws), its normalisation layers already ensemble
         # layers of all the members (ensemble_of keeps the first member's)
-        normalisation = {
+        normalisation: dict[str, Any] = {
             name: [functools.partial(module, n_critics) for module in getattr(self, name)]
             for name in ("pre_linear_modules", "post_linear_modules")
         }

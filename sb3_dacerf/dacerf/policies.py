@@ -243,7 +243,8 @@ def written_out_layers(critic: EnsembleCritic) -> tuple[list[_Block], tuple[th.T
             with th.no_grad():
                 pending = module.normalisation()
         elif isinstance(module, EnsembleLinear):
-            weight, bias = module.weight, module.bias
+            weight: th.Tensor = module.weight
+            bias: th.Tensor = module.bias
             if pending is not None:
                 gain, shift = pending
                 with th.no_grad():

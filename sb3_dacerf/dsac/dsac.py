@@ -2,11 +2,9 @@ import math
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
-import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer, ReplayBufferSamples
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
@@ -103,80 +101,37 @@ def critic_loss(
 class DSAC(TwinCriticAlgorithm):
     """
     Distributional Soft Actor-Critic with three refinements (DSAC-T, also called DSAC v2), the Gaussian-policy
-    baseline of the DACER-F paper.
+    baseline of the DACER-F paper: Duan et al., IEEE TPAMI 2025 (arXiv:2310.05858); authors' code:
+    https://github.com/Jingliang-Duan/DSAC-v2 (``dsac_v2.py``).
 
-    Twin critics output a Gaussian return distribution ``N(Q_i(s, a), σ_i(s, a)²)``. The target takes the smaller of
-    the two target means, ``y = r + γ (1 - done) (min_j Q̄_j(s', a') - α log π̄(a'|s'))`` with ``a' ~ π̄(·|s')`` from
-    the target policy network, and the return sampled from the same target critic,
-    ``y_z = r + γ (1 - done) (Q̄_z(s', a') - α log π̄(a'|s'))``, ``Q̄_z = Q̄ + clip(z, -3, 3) σ̄``. Each critic's mean
-    is regressed on ``y`` (expected-value substitution), its standard deviation on ``y_b = Q + clip(y_z - Q, ±3 ω̄)``
-    with ``ω̄`` the running mean of its ``σ`` (an exponential average with coefficient ``tau_b``), and both
-    gradients are weighted by ``ω̄²`` over ``σ² + ε`` (see :func:`critic_loss`). The actor is a tanh-Gaussian
-    trained as SAC's, ``J_π = E[α log π(a|s) - min_j Q_j(s, a)]``, with SAC's entropy temperature ``α`` learned
-    towards ``target_entropy``. Actor, ``α`` and all target networks are updated once every ``policy_delay`` critic
-    updates, from gradients computed with the networks of before that update's critic step.
+    Twin critics output a Gaussian return distribution ``N(Q_i(s, a), σ_i(s, a)²)``. Each critic's mean is regressed
+    on the target ``y = r + γ (1 - done) (min_j Q̄_j(s', a') - α log π̄(a'|s'))``, ``a' ~ π̄(·|s')`` from the target
+    policy, its standard deviation on the return sampled from the same target critic, bounded to ``±3 ω̄`` around
+    ``Q`` (``ω̄`` the running mean of its ``σ``), both weighted by ``ω̄²`` over ``σ² + ε`` (:func:`critic_loss`). The
+    tanh-Gaussian actor is trained as SAC's, with SAC's temperature ``α`` learned towards ``target_entropy``; actor,
+    ``α`` and targets are updated once every ``policy_delay`` critic updates, from gradients computed before that
+    update's critic step. The defaults are the authors'; the documentation page lists where this class departs from
+    their code.
 
-    Papers: "Distributional Soft Actor-Critic with Three Refinements", Duan et al., IEEE TPAMI 2025
-    (arXiv:2310.05858); "Distributional Soft Actor-Critic", Duan et al., IEEE TNNLS 2021. Authors' code:
-    https://github.com/Jingliang-Duan/DSAC-v2 (``dsac_v2.py``) and GOPS (``gops/algorithm/dsact.py``).
+    SB3's arguments (``policy``, ``env``, ``learning_rate`` (of the actor and the critics), ``buffer_size``,
+    ``learning_starts``, ``batch_size``, ``tau`` (of the target critics and policy), ``gamma``, ``train_freq``,
+    ``gradient_steps``, ``action_noise``, ``replay_buffer_class``, ``replay_buffer_kwargs``,
+    ``optimize_memory_usage``, ``n_steps``, ``stats_window_size``, ``tensorboard_log``, ``verbose``, ``seed``,
+    ``device``, ``_init_setup_model``) are those of SB3's SAC; the others:
 
-    The defaults are the authors' (``dsac_v2.py``, ``networks/mlp.py`` and ``example_train/`` there): learning rate
-    1e-4 for the actor and the critics, 3e-4 for ``α``, ``log α`` starting at 1, ``target_entropy = -dim(A)``,
-    3 x 256 GELU networks, ``log σ`` of the actor clipped to [-20, 0.5], ``tau = tau_b = 0.005``, policy delay 2,
-    ``γ = 0.99``, batch 256. Where this class departs from that code (SB3's conventions: ``learning_starts``, one
-    environment step per gradient step, actions scaled to [-1, 1]) the documentation page lists it with the commit
-    it was checked against.
-
-    :param policy: The policy model to use (MlpPolicy, CnnPolicy, ...)
-    :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: learning rate for the optimizer of the actor and of the critics (1e-4, the authors';
-        SB3's SAC uses 3e-4), it can be a function of the current progress remaining (from 1 to 0)
-    :param buffer_size: size of the replay buffer
-    :param learning_starts: how many steps of the model to collect transitions for before learning starts
-    :param batch_size: Minibatch size for each gradient update
-    :param tau: the soft update coefficient ("Polyak update", between 0 and 1) of the target critics and of the
-        target policy
-    :param gamma: the discount factor
-    :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
-        like ``(5, "step")`` or ``(2, "episode")``.
-    :param gradient_steps: How many gradient steps to do after each rollout (see ``train_freq``)
-        Set to ``-1`` means to do as many gradient steps as steps done in the environment
-        during the rollout.
-    :param action_noise: the action noise type (None by default), added to the policy's samples during rollouts
-    :param replay_buffer_class: Replay buffer class to use (for instance ``HerReplayBuffer``).
-        If ``None``, it will be automatically selected.
-    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
-    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
-        at a cost of more complexity.
-    :param n_steps: When n_step > 1, uses n-step return (with the NStepReplayBuffer) when updating the Q-value network.
     :param ent_coef: Entropy temperature ``α``: ``"auto"`` learns it from ``α = e`` (``log α = 1``, the authors'
         start), ``"auto_<x>"`` from ``α = x > 0`` (``"auto_1"`` is SB3's SAC), a number ``>= 0`` keeps it fixed
     :param target_entropy: Target entropy when ``α`` is learned; ``"auto"`` is ``-dim(A)``
-    :param alpha_learning_rate: Learning rate (Adam) of ``log α`` (3e-4, the authors')
-    :param policy_delay: The actor, ``α`` and the target networks are updated once every ``policy_delay`` critic
-        updates (at the first update, then every ``policy_delay``, as the authors' iteration counter from 0)
+    :param alpha_learning_rate: Learning rate (Adam) of ``log α``
+    :param policy_delay: The actor, ``α`` and the target networks are updated at the first update, then once every
+        ``policy_delay`` critic updates
     :param tau_b: Coefficient of the running mean ``ω̄`` of each critic's standard deviation,
-        ``ω̄ <- (1 - tau_b) ω̄ + tau_b mean(σ)`` (``ω̄`` starts at the first batch's mean); ``None``: ``tau``, as
-        in the authors' code
-    :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
-        the reported success rate, mean episode length, and mean reward over
-    :param tensorboard_log: the log location for tensorboard (if None, no logging)
-    :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g.
+        ``ω̄ <- (1 - tau_b) ω̄ + tau_b mean(σ)`` (``ω̄`` starts at the first batch's mean); ``None``: ``tau``
+    :param policy_kwargs: Arguments of :class:`~sb3_dacerf.dsac.policies.DSACPolicy`, e.g.
         ``dict(net_arch=[256, 256], activation_fn=nn.ReLU, log_std_max=2)``
-    :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
-        debug messages
-    :param seed: Seed for the pseudo random generators
-    :param device: Device (cpu, cuda, ...) on which the code should be run.
-        Setting it to auto, the code will be run on the GPU if possible.
-    :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
-    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
-        "MlpPolicy": MlpPolicy,
-        "CnnPolicy": CnnPolicy,
-        "MultiInputPolicy": MultiInputPolicy,
-    }
-    #: DSAC's own hyper-parameters with their valid values, besides those of every algorithm of the package
+    policy_aliases: ClassVar[dict] = dict(MlpPolicy=MlpPolicy, CnnPolicy=CnnPolicy, MultiInputPolicy=MultiInputPolicy)
     hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
         **TwinCriticAlgorithm.hyperparameter_rules,
         "alpha_learning_rate": HyperparameterRule(lambda value: value > 0, "> 0"),
@@ -262,32 +217,22 @@ class DSAC(TwinCriticAlgorithm):
             self._setup_model()
 
     def _setup_model(self) -> None:
-        super()._setup_model()
         #: log α, trained by its own loss and optimizer when α is learned (as SB3's SAC)
         self.log_ent_coef = th.zeros((), device=self.device)
-        self._setup_temperature(self.log_ent_coef, -float(get_action_dim(self.action_space)), self.alpha_learning_rate)
+        super()._setup_model()
+        self._setup_temperature(-float(get_action_dim(self.action_space)), self.alpha_learning_rate)
+
+    @property
+    def log_alpha(self) -> th.Tensor:
+        """``log α``, the temperature: ``log_ent_coef``."""
+        return self.log_ent_coef
 
     def _create_aliases(self) -> None:
         super()._create_aliases()
         self.actor_target = self.policy.actor_target
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        # Switch to train mode (this affects batch norm / dropout)
-        self.policy.set_training_mode(True)
-        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
-        assert self.replay_buffer is not None, "train() needs the replay buffer that _setup_model() creates"
-
-        logs: dict[str, list[float]] = {}
-        for _ in range(gradient_steps):
-            self._n_updates += 1
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
-            for key, value in self._update(replay_data).items():
-                logs.setdefault(key, []).append(value)
-
-        self.logger.record("train/n_updates", self._n_updates)
-        self.logger.record("train/ent_coef", self.log_ent_coef.exp().item())
-        for key, values in logs.items():
-            self.logger.record(f"train/{key}", np.mean(values))
+        super().train(gradient_steps, batch_size)
         if self.running_std is not None:
             for index, value in enumerate(self.running_std, start=1):
                 self.logger.record(f"train/running_std{index}", value)
@@ -359,13 +304,7 @@ class DSAC(TwinCriticAlgorithm):
             assert log_prob is not None
             self.actor.optimizer.step()
             if self.ent_coef_optimizer is not None:
-                # J(α) = -log α (E[log π] + H_target): ∂J/∂log α = H - H_target
-                ent_coef_gradient = -(log_prob.detach().mean().item() + float(self.target_entropy))
-                ent_coef_loss = self.log_ent_coef * ent_coef_gradient
-                self.ent_coef_optimizer.zero_grad()
-                ent_coef_loss.backward()
-                self.ent_coef_optimizer.step()
-                logs["ent_coef_loss"] = self.log_ent_coef.item() * ent_coef_gradient
+                logs["ent_coef_loss"] = self._update_temperature(logs["entropy"])
             self._update_targets()
         return logs
 
