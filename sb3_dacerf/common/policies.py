@@ -39,13 +39,7 @@ class Actor(BasePolicy, ABC):
     - :meth:`act` ``(features, deterministic=False)`` and ``forward(obs, deterministic=False)``: ``sample(features)``
       if deterministic, else ``add_exploration_noise(sample(features, draw_noise(features)))``.
 
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param net_arch: Hidden layer sizes of the network
-    :param features_extractor: Network to extract features (a CNN when using images, a nn.Flatten() layer otherwise)
-    :param features_dim: Number of features
-    :param activation_fn: Activation function
-    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
+    Takes the arguments of SB3's SAC ``Actor`` but those of gSDE (``net_arch``: the network's hidden layer sizes).
     """
 
     action_space: spaces.Box
@@ -124,25 +118,18 @@ class GenerativeActor(Actor):
     :class:`~sb3_dacerf.dacer.policies.DiffusionActor`): a network of (state features, action, time), and Gaussian
     exploration noise ``clip(a + exploration_noise_scale · α · ξ, -1, 1)``, ``ξ ~ N(0, I)``, on stochastic actions,
     with the temperature ``α = exp(log_alpha)`` that the algorithm sets and learns (no noise at ``log_alpha = -inf``).
-    A generative policy has no tractable log-density: each algorithm estimates its entropy from samples.
-
-    Takes the arguments of :class:`Actor`, and:
-
-    :param exploration_noise_scale: Standard deviation of the exploration noise at ``α = 1``
+    A generative policy has no tractable log-density: each algorithm estimates its entropy from samples. Takes the
+    arguments of :class:`Actor`.
     """
 
+    #: Standard deviation of the exploration noise at ``α = 1``
+    exploration_noise_scale: ClassVar[float] = 0.15
     #: ``log α`` of the entropy regulator, saved with the actor; the algorithm sets it and trains it with its own optimizer
     log_alpha: nn.Parameter
 
-    def __init__(self, *args: Any, exploration_noise_scale: float = 0.15, **kwargs: Any):
+    def __init__(self, *args: Any, **kwargs: Any):
         super().__init__(*args, **kwargs)
-        self.exploration_noise_scale = exploration_noise_scale
         self.log_alpha = nn.Parameter(th.zeros(()), requires_grad=False)
-
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update(exploration_noise_scale=self.exploration_noise_scale)
-        return data
 
     @property
     def exploration_std(self) -> th.Tensor:
@@ -210,9 +197,7 @@ class EnsembleLayerNorm(nn.Module):
 class EnsembleBatchRenorm(nn.Module):
     """
     Batch renormalisation (Ioffe 2017) with running statistics and an affine transform of its own for each member:
-    the computation of sb3-contrib's ``BatchRenorm1d`` (CrossQ's), member by member. In training mode it normalises
-    with the batch's statistics (corrected towards the running ones after ``warmup_steps`` steps) and updates the
-    running statistics; in evaluation mode it normalises with the running statistics.
+    the computation of sb3-contrib's ``BatchRenorm1d`` (CrossQ's), member by member.
 
     :param n_members: Number of members (critics)
     :param num_features: Number of features
@@ -295,19 +280,8 @@ class EnsembleCritic(BaseModel):
     """
     ``n_critics`` Q-networks ``Q_j(s, a) = MLP_j(concat(features(s), a))`` run as one ensemble network
     (:attr:`ensemble`: :class:`EnsembleLinear` layers with activations between them, normalisation layers in the
-    subclasses). Same arguments and interface as SB3's ``ContinuousCritic``: calling it returns one ``(batch, 1)``
-    tensor per critic; :meth:`q_values` returns them stacked.
-
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param net_arch: Hidden layer sizes of each Q-network
-    :param features_extractor: Network to extract features (a CNN when using images, a nn.Flatten() layer otherwise)
-    :param features_dim: Number of features
-    :param activation_fn: Activation function
-    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
-    :param n_critics: Number of critic networks to create.
-    :param share_features_extractor: Whether the features extractor is shared with the actor (it then gets no
-        gradient from the critic)
+    subclasses). Same arguments as SB3's ``ContinuousCritic``; calling it returns one ``(batch, 1)`` tensor per critic
+    as that does, :meth:`q_values` returns them stacked.
     """
 
     features_extractor: BaseFeaturesExtractor
@@ -357,12 +331,7 @@ class EnsembleCritic(BaseModel):
         return self.q_values_of_features(features, actions)
 
     def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
-        """One ``(batch, 1)`` tensor per critic, as SB3's ``ContinuousCritic``."""
         return tuple(self.q_values(obs, actions).unbind(0))
-
-    def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        """The first critic's ``Q_1(s, a)``, ``(batch, 1)``, as SB3's ``ContinuousCritic.q1_forward``."""
-        return self.q_values(obs, actions)[0]
 
 
 class LayerNormCritic(EnsembleCritic):
@@ -405,16 +374,10 @@ def twin_critic_loss(
     critic: EnsembleCritic, critic_target: EnsembleCritic, replay_data: ReplayBufferSamples, next_actions: th.Tensor, gamma: float
 ) -> th.Tensor:
     """
-    The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` on a replay batch, with the Bellman target
-    ``y = r + γ (1 - done) min_j Q̄_j(s', a')`` (the critics themselves instead of the targets with CrossQ's critics,
-    whose running statistics this pass updates).
-
-    :param critic: The critics ``Q_i``
-    :param critic_target: Their targets ``Q̄_j``
-    :param replay_data: A batch of the replay buffer
-    :param next_actions: ``a' ~ π(·|s')`` ``(batch, action_dim)``, without gradient
-    :param gamma: The discount factor (``replay_data.discounts`` replace it for n-step returns)
-    :return: The loss, differentiable with respect to the critics
+    The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` of the critics ``Q_i`` on a replay batch, with the
+    Bellman target ``y = r + γ (1 - done) min_j Q̄_j(s', a')`` of the targets ``Q̄_j`` (of the critics themselves with
+    CrossQ's critics, whose running statistics this pass updates), ``a'`` the ``next_actions``, ``γ`` the
+    ``replay_data.discounts`` of n-step returns or else ``gamma``.
     """
     discounts = replay_data.discounts if replay_data.discounts is not None else gamma
     if isinstance(critic, BatchRenormCritic):
@@ -455,19 +418,10 @@ class TwinCriticPolicy(BasePolicy):
     their actor class in ``actor_class`` and pass its own keyword arguments in ``actor_kwargs``; ``CnnPolicy`` and
     ``MultiInputPolicy`` set ``default_features_extractor_class``.
 
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param lr_schedule: Learning rate schedule (could be constant)
-    :param net_arch: Hidden layer sizes of the actor and of the critics (a list for both, or
-        ``dict(pi=[...], qf=[...])``); ``[256, 256]`` by default
-    :param activation_fn: Activation function
-    :param features_extractor_class: Features extractor to use; ``None``: ``default_features_extractor_class``
-    :param features_extractor_kwargs: Keyword arguments to pass to the features extractor.
-    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
-    :param optimizer_class: The optimizer to use, a class or its name (``"Adam"``, ``"AdamW"``, ``"RAD"``, ...)
-    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
-    :param n_critics: Number of critic networks, run together (:class:`EnsembleCritic`)
-    :param share_features_extractor: Whether to share or not the features extractor between the actor and the critic
+    Takes the arguments of SB3's ``SACPolicy`` but those of gSDE (``net_arch`` ``[256, 256]`` by default,
+    ``features_extractor_class`` ``default_features_extractor_class`` by default, ``optimizer_class`` a class or its
+    name: ``"Adam"``, ``"AdamW"``, ``"RAD"``, ...), and:
+
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
     :param critic: The critics' networks: ``"mlp"`` (SB3's MLPs: :class:`EnsembleCritic`), ``"layer_norm"``
         (:class:`LayerNormCritic`) or ``"batch_renorm"`` (CrossQ's critics: :class:`BatchRenormCritic`, without
@@ -594,12 +548,8 @@ class TwinCriticPolicy(BasePolicy):
         return self.actor(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
-        """
-        Put the policy in either training or evaluation mode; nothing is done when the actor and the critic are
-        already in that mode (``predict()`` calls this before every action; switch sub-modules through this method).
-
-        :param mode: if true, set to training mode, else set to evaluation mode
-        """
+        """Put the policy in training or evaluation mode; nothing is done when the actor and the critic are already in
+        that mode (``predict()`` calls this before every action)."""
         if self.training == self.actor.training == self.critic.training == mode:
             return
         self.actor.set_training_mode(mode)

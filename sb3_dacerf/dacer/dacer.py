@@ -18,17 +18,11 @@ class DACER(TwinCriticAlgorithm):
     Diffusion Actor-Critic with Entropy Regulator (DACER), Wang et al., NeurIPS 2024 (arXiv:2405.15177), the
     diffusion baseline of the DACER-F paper; official JAX code: https://github.com/happy-yan/DACER-Diffusion-with-Online-RL
 
-    A DDPM policy (``n_diffusion_steps`` reverse steps per action) trained by ``-Q(s, π(s))`` backpropagated through
-    all the denoising steps; twin critics with target networks as in TD3/SAC. The policy's entropy is estimated by
-    fitting a Gaussian mixture to ``entropy_samples`` actions per state, every ``alpha_update_interval`` updates, and
-    the temperature ``α``, adapted towards ``target_entropy``, scales the exploration noise added to the actions. The
-    defaults are the official code's; the documentation page lists where this class departs from it.
+    A DDPM policy trained by ``-Q(s, π(s))`` backpropagated through all the denoising steps, twin critics with target
+    networks; the temperature ``α``, adapted towards ``target_entropy`` from a Gaussian-mixture estimate of the
+    policy's entropy, scales the exploration noise added to the actions. The defaults are the official code's.
 
-    SB3's arguments (``policy``, ``env``, ``learning_rate`` (of the actor and the critics), ``buffer_size``,
-    ``learning_starts``, ``batch_size``, ``tau``, ``gamma``, ``train_freq``, ``gradient_steps``, ``action_noise``,
-    ``replay_buffer_class``, ``replay_buffer_kwargs``, ``optimize_memory_usage``, ``n_steps``,
-    ``stats_window_size``, ``tensorboard_log``, ``verbose``, ``seed``, ``device``, ``_init_setup_model``) are those
-    of SB3's SAC; the others:
+    Its other arguments are those of SB3's ``SAC`` (``learning_rate``: of the actor and the critics); its own:
 
     :param policy_delay: Policy and target network updates happen once every ``policy_delay`` critic updates
     :param ent_coef: Entropy regulator coefficient ``α``, the exploration noise being ``N(0, (0.15 α)²)``:
@@ -39,7 +33,7 @@ class DACER(TwinCriticAlgorithm):
         that many updates
     :param entropy_samples: Number of actions sampled per state for the entropy estimate
     :param policy_kwargs: Arguments of :class:`~sb3_dacerf.dacer.policies.DACERPolicy`, e.g.
-        ``dict(net_arch=[256, 256], n_diffusion_steps=20, exploration_noise_scale=0.1)``
+        ``dict(net_arch=[256, 256], n_diffusion_steps=20)``
     """
 
     policy_aliases: ClassVar[dict] = dict(MlpPolicy=MlpPolicy, CnnPolicy=CnnPolicy, MultiInputPolicy=MultiInputPolicy)

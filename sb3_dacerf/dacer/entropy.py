@@ -14,18 +14,14 @@ def gaussian_mixture_entropy(
     min_variance: float = 1e-6,
 ) -> th.Tensor:
     """
-    Fit a Gaussian mixture with diagonal covariances to the samples of each state by expectation-maximisation,
-    and return its entropy estimate ``H ≈ Σ_k w_k H(N(μ_k, Σ_k)) - Σ_k w_k log w_k``.
-
-    That is DACER's estimate (exact for well-separated components, an upper bound otherwise). The fits of all
-    the states run at once, as batched tensor operations.
+    DACER's entropy estimate ``H ≈ Σ_k w_k H(N(μ_k, Σ_k)) - Σ_k w_k log w_k`` of a Gaussian mixture with diagonal
+    covariances fitted to the samples of each state by expectation-maximisation (all the states at once).
 
     :param samples: Actions sampled from the policy, ``(n_states, n_samples, action_dim)``
     :param n_components: Number of mixture components ``K``
     :param n_iterations: Maximum number of EM iterations
     :param tolerance: Stop when no state's mean log-likelihood changed by more than this (sklearn's default)
-    :param min_variance: Added to every variance, so that dimensions where all samples agree (e.g. actions
-        clipped at a bound) keep a finite log-density
+    :param min_variance: Added to every variance (actions clipped at a bound keep a finite log-density)
     :return: The entropy estimate of each state, ``(n_states,)``
     """
     n_states, n_samples, action_dim = samples.shape

@@ -3,9 +3,7 @@ from typing import Any
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN, create_mlp
-from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
 from sb3_dacerf.common.policies import EnsembleCritic, GenerativeActor, TwinCriticPolicy
@@ -13,12 +11,9 @@ from sb3_dacerf.common.policies import EnsembleCritic, GenerativeActor, TwinCrit
 
 def vp_betas(n_steps: int) -> np.ndarray:
     """
-    Noise variances ``β_1..β_T`` of the forward diffusion process: the variance-preserving schedule of Diffusion-QL,
-    used by the official DACER code, ``β_t = 1 - exp(-b_min / T - (b_max - b_min) (2t - 1) / (2 T²))``,
+    Noise variances ``β_1..β_T`` (``T = n_steps``) of the forward diffusion process: the variance-preserving schedule
+    of Diffusion-QL and the official DACER code, ``β_t = 1 - exp(-b_min / T - (b_max - b_min) (2t - 1) / (2 T²))``,
     ``b_min = 0.1``, ``b_max = 10``.
-
-    :param n_steps: Number of diffusion steps ``T``
-    :return: The betas, shape ``(T,)``
     """
     b_min, b_max = 0.1, 10.0
     t = np.arange(1, n_steps + 1)
@@ -133,7 +128,6 @@ class DACERPolicy(TwinCriticPolicy):
     (``net_arch=[256, 256, 256]``, ``activation_fn=nn.Mish``), and:
 
     :param n_diffusion_steps: Number of diffusion steps of the actor
-    :param exploration_noise_scale: Standard deviation of the exploration noise at ``α = 1``
     """
 
     actor_class = DiffusionActor
@@ -143,23 +137,17 @@ class DACERPolicy(TwinCriticPolicy):
 
     def __init__(
         self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        *,
+        *args: Any,
         net_arch: list[int] | dict[str, list[int]] | None = None,
         activation_fn: type[nn.Module] = nn.Mish,
         n_diffusion_steps: int = 20,
-        exploration_noise_scale: float = 0.15,
         **kwargs: Any,
     ):
         super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
+            *args,
             net_arch=[256, 256, 256] if net_arch is None else net_arch,
             activation_fn=activation_fn,
-            actor_kwargs=dict(n_diffusion_steps=n_diffusion_steps, exploration_noise_scale=exploration_noise_scale),
+            actor_kwargs=dict(n_diffusion_steps=n_diffusion_steps),
             **kwargs,
         )
 

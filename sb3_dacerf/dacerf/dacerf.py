@@ -23,19 +23,12 @@ class DACERF(TwinCriticAlgorithm):
     Diffusion Actor-Critic with Entropy Regulator via Flow matching (DACER-F), after "Real-Time Generative Policy via
     Langevin-Guided Flow Matching for Autonomous Driving" (arXiv:2603.02613).
 
-    A flow-matching policy that generates an action in ``n_sampling_steps`` Euler steps, trained towards targets
-    ``a*`` that Langevin dynamics on the critic (``p(a|s) ∝ exp(Q(s, a) / α)``, Algorithm 1) reach from replay
-    actions, plus the improvement term: ``J_F = mean(-Q(s, π(s)) / κ + λ_f ||v(s, a_t, t) - (a* - a_0)||²)`` with
-    ``λ_f ∝ ReLU(Q(s, a*) - Q(s, a_B))`` (:func:`actor_loss_weights`), every Q ``min(Q_1, Q_2)``. Twin critics with
-    target networks as in TD3/SAC. This package's entropy regulator (after DACER's) adds ``N(0, (0.15 α)²)`` noise to
-    stochastic actions, ``α`` learned towards ``target_entropy``; :data:`PAPER_HYPERPARAMETERS` holds the paper's
-    settings.
+    A flow-matching policy trained towards targets ``a*`` that Langevin dynamics on the critic (Algorithm 1) reach
+    from replay actions, plus ``-Q(s, π(s))`` (:meth:`actor_loss_terms`); twin critics with target networks. This
+    package's entropy regulator (after DACER's) adds ``N(0, (0.15 α)²)`` noise to stochastic actions, ``α`` learned
+    towards ``target_entropy``; :data:`PAPER_HYPERPARAMETERS` holds the paper's settings.
 
-    SB3's arguments (``policy``, ``env``, ``learning_rate`` (of the actor, the critics and ``α``), ``buffer_size``,
-    ``learning_starts``, ``batch_size``, ``tau``, ``gamma``, ``train_freq``, ``gradient_steps``, ``action_noise``,
-    ``replay_buffer_class``, ``replay_buffer_kwargs``, ``optimize_memory_usage``, ``n_steps``,
-    ``stats_window_size``, ``tensorboard_log``, ``seed``, ``device``, ``_init_setup_model``) are those of SB3's SAC;
-    the others:
+    Its other arguments are those of SB3's ``SAC`` (``learning_rate``: of the actor, the critics and ``α``); its own:
 
     :param policy_delay: The actor is updated once every ``policy_delay`` critic updates
     :param langevin_steps: Number of Langevin steps ``N_l`` that turn replay actions into targets ``a*``
@@ -180,12 +173,9 @@ class DACERF(TwinCriticAlgorithm):
 
     def langevin_targets(self, observations: th.Tensor, actions: th.Tensor) -> th.Tensor:
         """
-        The Langevin targets ``a*`` (Algorithm 1) that the actor update builds from ``actions`` at ``observations``,
-        with this model's ``langevin_*`` settings, on ``∇_a min_j Q_j(s, a)`` of its critics (which get no gradient).
-
-        :param observations: A batch of (preprocessed) observations
-        :param actions: The starting actions, in the policy's [-1, 1] space, one per observation
-        :return: ``a*``, detached, the shape of ``actions``
+        The Langevin targets ``a*`` (Algorithm 1, detached) that the actor update builds from ``actions`` (in [-1, 1])
+        at ``observations`` (preprocessed), with this model's ``langevin_*`` settings, on ``∇_a min_j Q_j(s, a)`` of its
+        critics (which get no gradient).
         """
         with frozen(self._critic_parameters()):
             return self._langevin(MinQActionGradient(self.critic, observations), actions)
@@ -202,13 +192,11 @@ class DACERF(TwinCriticAlgorithm):
 
     def actor_loss_terms(self, replay_data: Any) -> dict[str, th.Tensor]:
         """
-        The two terms of the actor loss ``J_F`` on a replay batch (Algorithm 2), with what they are made of.
-
-        :param replay_data: A batch of the replay buffer
-        :return: ``improvement_term`` (``mean(-Q(s, π(s)) / κ)``) and ``imitation_term``
-            (``mean(λ_f ||v - (a* - a_0)||²)``), both differentiable with respect to the actor, and (detached)
-            ``kappa``, ``lambda_f``, ``flow_error``, ``q_values_star``, ``q_values_buffer``, the state ``features``
-            and the flow-matching ``targets`` (``a*``, unless the batch chose others: :meth:`imitation_targets`)
+        The two terms of the actor loss ``J_F`` on a replay batch (Algorithm 2): ``improvement_term``
+        (``mean(-Q(s, π(s)) / κ)``) and ``imitation_term`` (``mean(λ_f ||v - (a* - a_0)||²)``), both differentiable
+        with respect to the actor, and what they are made of (detached): ``kappa``, ``lambda_f``, ``flow_error``,
+        ``q_values_star``, ``q_values_buffer``, the state ``features`` and the flow-matching ``targets``. Every Q is
+        ``min(Q_1, Q_2)``; :func:`actor_loss_weights` gives ``κ`` and ``λ_f``.
         """
         observations, actions_buffer = replay_data.observations, replay_data.actions
         with frozen(self._critic_parameters()):
@@ -346,18 +334,14 @@ def langevin_targets(
     normalize_gradient: bool = False,
 ) -> th.Tensor:
     """
-    Algorithm 1 of the DACER-F paper (Langevin Optimize Action): move replay actions ``a_B`` towards samples of
-    ``p(a|s) ∝ exp(Q(s, a) / α)`` with ``N_l`` steps ``a <- a + η ∇_a Q(s, a) + sqrt(2 η α) ξ``, ``ξ ~ N(0, I)``,
-    each clipped to the action bounds [-1, 1].
+    Algorithm 1 of the DACER-F paper (Langevin Optimize Action): move the replay actions ``a_B`` (``actions``)
+    towards samples of ``p(a|s) ∝ exp(Q(s, a) / α)`` with ``N_l`` (``n_steps``) steps
+    ``a <- a + η ∇_a Q(s, a) + sqrt(2 η α) ξ``, ``ξ ~ N(0, I)``, each clipped to the action bounds [-1, 1].
 
-    :param action_gradient: ``∇_a Q(s, a)`` of a batch of actions ``(batch, action_dim)``, the states bound inside it
-        (:class:`~sb3_dacerf.dacerf.policies.MinQActionGradient` for DACERF's critics)
-    :param actions: The starting actions ``a_B``, in [-1, 1]
-    :param n_steps: ``N_l``
+    :param action_gradient: ``∇_a Q(s, a)`` of a batch of actions, the states bound inside it
     :param step_size: ``η``
     :param temperature: ``α``
-    :param normalize_gradient: Divide ``∇_a Q`` by ``max(1, mean |∇_a Q|)`` over the batch at every step, so that a
-        step moves a coordinate by ``η`` on average at most, whatever the reward's scale
+    :param normalize_gradient: Divide ``∇_a Q`` by ``max(1, mean |∇_a Q|)`` over the batch at every step
     :return: The optimised actions ``a*``, detached
     """
     # ξ of every step, drawn at once and scaled by sqrt(2 η α)
@@ -380,15 +364,10 @@ def flow_matching_loss(
     time: th.Tensor | None = None,
 ) -> th.Tensor:
     """
-    Conditional flow matching towards ``targets`` on the straight path ``a_t = (1 - t) a_0 + t a*``, whose
-    velocity is ``a* - a_0``: the per-sample error ``||v(a_t, t) - (a* - a_0)||²``.
-
-    :param velocity: Maps points ``a_t`` ``(batch, action_dim)`` and times ``t`` ``(batch, 1)`` to the predicted
-        velocity ``v(s, a_t, t)``, the states bound inside it
-    :param targets: The target actions ``a*``, ``(batch, action_dim)``
-    :param noise: The path's starting points ``a_0``; ``N(0, I)`` draws by default
-    :param time: The times ``t``; ``U[0, 1]`` draws by default
-    :return: The squared error of each sample, ``(batch, 1)``
+    Conditional flow matching towards ``targets`` ``a*`` on the straight path ``a_t = (1 - t) a_0 + t a*``: the error
+    ``||v(a_t, t) - (a* - a_0)||²`` of each sample ``(batch, 1)``, ``velocity`` mapping ``(a_t, t)`` to ``v(s, a_t, t)``
+    (the states bound inside it), ``a_0`` the ``noise`` (``N(0, I)`` draws by default) and ``t`` the ``time``
+    (``U[0, 1]`` draws by default).
     """
     noise = th.randn_like(targets) if noise is None else noise
     time = th.rand((targets.shape[0], 1), device=targets.device, dtype=targets.dtype) if time is None else time
@@ -400,21 +379,13 @@ def actor_loss_weights(
     method: str, q_values_star: th.Tensor, q_values_buffer: th.Tensor, coef: float = 1.0
 ) -> tuple[th.Tensor, th.Tensor]:
     """
-    Weights of the actor loss ``J_F = mean(-Q(s, π(s)) / κ + λ_f ||v - (a* - a_0)||²)``: the scale ``κ`` of the
-    improvement term and the per-sample weight ``λ_f`` of the flow-matching (imitation) term. Both keep the paper's
-    ``λ_f ∝ g = ReLU(Q(s, a*) - Q(s, a_B))``, the Langevin gain of each sample:
+    Weights of the actor loss ``J_F = mean(-Q(s, π(s)) / κ + λ_f ||v - (a* - a_0)||²)``, from the Langevin gain
+    ``g = ReLU(Q(s, a*) - Q(s, a_B))`` of each sample (``q_values_star``, ``q_values_buffer``: ``(batch, 1)``):
 
-    - ``"gain"``: ``κ = mean(g)`` and ``λ_f = coef · g / mean(g)``. Both terms are then free of the reward's scale
-      and shift (``-Q / κ`` has the gradient of ``Q`` in units of the batch's Langevin gain). ``κ`` is floored at
-      ``1e-3`` of the batch's mean absolute deviation of ``Q(s, a_B)`` for batches where Langevin dynamics found no
-      gain.
-    - ``"paper"``: ``κ = 1`` and ``λ_f = coef · g``, the paper's weight taken literally (the proportionality constant,
-      which the paper does not give, is ``coef``).
+    - ``"gain"``: ``κ = mean(g)`` (floored at ``1e-3`` of the mean absolute deviation of ``Q(s, a_B)``) and
+      ``λ_f = coef · g / mean(g)``: both terms free of the reward's scale and shift.
+    - ``"paper"``: ``κ = 1`` and ``λ_f = coef · g``, the paper's weight taken literally.
 
-    :param method: One of :data:`FLOW_MATCHING_WEIGHTS`
-    :param q_values_star: ``Q(s, a*)`` of the Langevin targets, ``(batch, 1)``
-    :param q_values_buffer: ``Q(s, a_B)`` of the replay actions the targets started from, ``(batch, 1)``
-    :param coef: ``flow_matching_coef``, the weight of the imitation term
     :return: ``κ`` (a scalar tensor) and ``λ_f`` ``(batch, 1)``, both detached
     """
     with th.no_grad():

@@ -2,9 +2,8 @@ from collections.abc import Callable
 from typing import Any
 
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN, create_mlp
-from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
 from sb3_dacerf.common.policies import (
@@ -105,24 +104,14 @@ class DACERFPolicy(TwinCriticPolicy):
     critic: EnsembleCritic
     critic_target: EnsembleCritic
 
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        *,
-        n_sampling_steps: int = 1,
-        **kwargs: Any,
-    ):
+    def __init__(self, *args: Any, n_sampling_steps: int = 1, **kwargs: Any):
         activation_fn = kwargs.get("activation_fn", nn.ReLU)
         if activation_fn not in ACTIVATION_BACKWARDS:
             raise ValueError(
                 f"DACERF's critics take activation_fn={', '.join(cls.__name__ for cls in ACTIVATION_BACKWARDS)} (the "
                 f"Langevin gradient is written out for them), not {activation_fn!r}."
             )
-        super().__init__(
-            observation_space, action_space, lr_schedule, actor_kwargs=dict(n_sampling_steps=n_sampling_steps), **kwargs
-        )
+        super().__init__(*args, actor_kwargs=dict(n_sampling_steps=n_sampling_steps), **kwargs)
 
 
 # A hidden block of a written-out critic: (weight (n, in, out), bias (n, out), LayerNorm or None, activation)
@@ -147,18 +136,10 @@ def _layer_norm_backward(
 
 class MinQActionGradient:
     """
-    ``∇_a min_j Q_j(s, a)`` of ensemble critics (:class:`~sb3_dacerf.common.policies.EnsembleCritic`) at fixed
-    states ``s``: the gradient of DACER-F's Langevin steps, written out without an autograd graph.
-
-    Built once per batch of states: the features, and every critic's first-layer contribution of the state, are
-    computed once. The forward pass runs all the critics in one batched product per layer; the chain rule then goes
-    back through the critic with the smallest Q only, per sample (as autograd routes the gradient through ``min``).
-    It covers ensemble ``Linear`` layers with the activations of :data:`ACTIVATION_BACKWARDS`, optionally a
-    ``LayerNorm`` after each hidden layer or a batch renormalisation in running-statistics mode before each layer
-    (folded into that layer).
-
-    :param critic: The critics ``Q_j(s, a)``
-    :param observations: The fixed states ``s``, a batch
+    ``∇_a min_j Q_j(s, a)`` of the ensemble ``critic`` at the fixed states ``observations``: the gradient of DACER-F's
+    Langevin steps, written out without an autograd graph (:func:`written_out_layers`). The features, and every
+    critic's first-layer contribution of the state, are computed once; the chain rule goes back through the critic
+    with the smallest Q only, per sample (as autograd routes the gradient through ``min``).
     """
 
     def __init__(self, critic: EnsembleCritic, observations: PyTorchObs):
@@ -230,11 +211,9 @@ class MinQActionGradient:
 def written_out_layers(critic: EnsembleCritic) -> tuple[list[_Block], tuple[th.Tensor, th.Tensor]]:
     """
     The hidden blocks and the output layer ``(weight, bias)`` of ``critic.ensemble`` when it is
-    ``[BatchRenorm] Linear [LayerNorm] activation ... [BatchRenorm] Linear(·, 1)`` with written-out activations and
-    any batch renormalisation in running-statistics mode (folded into the next layer: in that mode it is the affine
-    map ``gain · x + shift``).
-
-    :raises ValueError: for any other critic
+    ``[BatchRenorm] Linear [LayerNorm] activation ... [BatchRenorm] Linear(·, 1)`` with the activations of
+    :data:`ACTIVATION_BACKWARDS` and any batch renormalisation in running-statistics mode (an affine map, folded into
+    the next layer); a ``ValueError`` for any other critic.
     """
     layers: list[list[Any]] = []  # [weight, bias, LayerNorm or None, activation or None] of each Linear
     pending: tuple[th.Tensor, th.Tensor] | None = None  # the folded batch renormalisation before the next Linear

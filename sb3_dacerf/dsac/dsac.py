@@ -14,16 +14,12 @@ from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
 from sb3_dacerf.common.validation import HyperparameterRule, made_env
 from sb3_dacerf.dsac.policies import CnnPolicy, DSACPolicy, GaussianActor, GaussianCritic, MlpPolicy, MultiInputPolicy
 
-#: ``ε`` of the weighting of the mean and standard-deviation gradients (``bias`` in the authors' code)
-STD_EPSILON = 0.1
-#: Range of the weight ``ω̄² / (σ² + ε)`` of the ``"dsac-v2"`` critic loss
-WEIGHT_RANGE = (0.1, 10.0)
-#: ``δ`` of the Huber losses of the ``"dsac-v2"`` critic loss
-HUBER_DELTA = 50.0
-#: The sampled target is kept within ``TARGET_BOUND_SCALE · ω̄`` of the current mean (``ω̄`` the running mean σ)
-TARGET_BOUND_SCALE = 3.0
-#: The standard normal of a sampled return ``Q̄ + z σ̄`` is clipped to ``[-SAMPLE_CLIP, SAMPLE_CLIP]``
-SAMPLE_CLIP = 3.0
+# The constants of DSAC-T's critic loss, as in the authors' code
+STD_EPSILON = 0.1  # ε of the weighting of the mean and standard-deviation gradients
+WEIGHT_RANGE = (0.1, 10.0)  # range of the weight ω̄² / (σ² + ε)
+HUBER_DELTA = 50.0  # δ of the Huber losses
+TARGET_BOUND_SCALE = 3.0  # y_z - Q is bounded to ±TARGET_BOUND_SCALE ω̄
+SAMPLE_CLIP = 3.0  # clip of the standard normal z of a sampled return Q̄ + z σ̄
 
 
 def distributional_targets(
@@ -35,17 +31,10 @@ def distributional_targets(
     normals: Sequence[th.Tensor],
 ) -> tuple[th.Tensor, th.Tensor]:
     """
-    DSAC-T's two targets from the target critics' distributions ``N(Q̄_j, σ̄_j²)`` at ``(s', a')``: with ``j*`` the
-    critic of the smaller mean, the expected-value target ``y = r + γ' (Q̄_j* - α log π̄(a'|s'))`` and the sampled
-    target ``y_z = r + γ' (Q̄_j* + clip(z_j*, -3, 3) σ̄_j* - α log π̄(a'|s'))`` (the sample of the same critic).
-
-    :param rewards: ``r`` ``(batch, 1)``
-    :param discounts: ``γ' = γ (1 - done)`` (``γⁿ (1 - done)`` for n-step returns), ``(batch, 1)`` or a number
-    :param next_distributions: ``(Q̄_j, σ̄_j)`` of the two target critics, each ``(batch, 1)``
-    :param next_log_prob: ``log π̄(a'|s')`` ``(batch, 1)``
-    :param ent_coef: ``α``
-    :param normals: Standard normal draws ``z_j``, one ``(batch, 1)`` tensor per critic
-    :return: ``y`` and ``y_z``, each ``(batch, 1)``
+    DSAC-T's two targets from the target critics' distributions ``next_distributions``, ``(Q̄_j, σ̄_j)`` at
+    ``(s', a')``: with ``j*`` the critic of the smaller mean, ``y = r + γ' (Q̄_j* - α log π̄(a'|s'))`` and the sampled
+    ``y_z = r + γ' (Q̄_j* + clip(z_j*, -3, 3) σ̄_j* - α log π̄(a'|s'))``, ``γ' = γ (1 - done)`` (``discounts``),
+    ``z_j`` the standard normal draws ``normals``; every tensor ``(batch, 1)``.
     """
     (mean_1, std_1), (mean_2, std_2) = next_distributions
     sample_1 = mean_1 + normals[0].clamp(-SAMPLE_CLIP, SAMPLE_CLIP) * std_1
@@ -57,14 +46,8 @@ def distributional_targets(
 
 
 def bounded_target(current_mean: th.Tensor, target_sample: th.Tensor, running_std: float | th.Tensor) -> th.Tensor:
-    """
-    DSAC-T's bounded sampled target: ``y_b = Q + clip(y_z - Q, -3 ω̄, 3 ω̄)``.
-
-    :param current_mean: ``Q(s, a)``, the critic's mean (treated as a constant)
-    :param target_sample: ``y_z = r + γ (1 - done) (Q̄_z(s', a') - α log π̄(a'|s'))``, the target with a sampled return
-    :param running_std: ``ω̄``, the running mean of the critic's standard deviation
-    :return: ``y_b``, of the shape of ``current_mean``, without gradient
-    """
+    """DSAC-T's bounded sampled target ``y_b = Q + clip(y_z - Q, -3 ω̄, 3 ω̄)``, without gradient, from the critic's
+    mean ``Q``, the sampled target ``y_z`` and the running mean ``ω̄`` of the critic's standard deviation."""
     current_mean = current_mean.detach()
     bound = TARGET_BOUND_SCALE * th.as_tensor(running_std, dtype=current_mean.dtype, device=current_mean.device)
     return (current_mean + th.clamp(target_sample.detach() - current_mean, -bound, bound)).detach()
@@ -74,19 +57,11 @@ def critic_loss(
     mean: th.Tensor, std: th.Tensor, target_mean: th.Tensor, target_bound: th.Tensor, running_std: float | th.Tensor
 ) -> th.Tensor:
     """
-    The loss of one Gaussian critic ``N(Q, σ²)``, written so that its gradients are DSAC-T's (Jingliang-Duan/DSAC-v2
-    ``dsac_v2.py``): the mean follows the expected-value target ``y`` (not a sampled one), the standard deviation the
-    bounded sampled target ``y_b``, each weighted with ``ε = 0.1`` so that small ``σ`` do not blow the step up:
-    ``mean(w (huber_δ(Q, y) + σ (σ_d² - huber_δ(Q_d, y_b)) / (σ_d + ε)))`` with ``w = clip(ω̄² / (σ_d² + ε), 0.1, 10)``,
-    ``δ = 50`` and ``huber_δ(x) = x²/2`` for ``|x| <= δ``: ``∂/∂Q = w (Q - y)``, ``∂/∂σ = w (σ² - (Q - y_b)²/2) / (σ + ε)``
-    per sample, before the batch mean (``_d``: treated as a constant). Only the gradients are meaningful, not the value.
-
-    :param mean: ``Q(s, a)`` ``(batch, 1)``
-    :param std: ``σ(s, a) > 0`` ``(batch, 1)``
-    :param target_mean: ``y = r + γ (1 - done) (min_j Q̄_j(s', a') - α log π̄(a'|s'))`` ``(batch, 1)``
-    :param target_bound: ``y_b`` of :func:`bounded_target` ``(batch, 1)``
-    :param running_std: ``ω̄``, the running mean of this critic's ``σ``
-    :return: The scalar loss
+    The loss of one Gaussian critic ``N(Q, σ²)`` (``mean``, ``std``), whose gradients are DSAC-T's: the mean follows
+    the target ``y`` (``target_mean``), the standard deviation the bounded sampled target ``y_b`` (``target_bound``):
+    ``mean(w (huber_δ(Q, y) + σ (σ_d² - huber_δ(Q_d, y_b)) / (σ_d + ε)))``, ``w = clip(ω̄² / (σ_d² + ε), 0.1, 10)``,
+    ``δ = 50``, ``ω̄`` the running mean of ``σ`` (``running_std``), ``_d`` treated as a constant. Only its gradients
+    are meaningful: ``∂/∂Q = w (Q - y)``, ``∂/∂σ = w (σ² - (Q - y_b)²/2) / (σ + ε)`` per sample.
     """
     omega = th.as_tensor(running_std, dtype=mean.dtype, device=mean.device)
     std_d = th.clamp(std, min=0.0).detach()
@@ -104,20 +79,13 @@ class DSAC(TwinCriticAlgorithm):
     baseline of the DACER-F paper: Duan et al., IEEE TPAMI 2025 (arXiv:2310.05858); authors' code:
     https://github.com/Jingliang-Duan/DSAC-v2 (``dsac_v2.py``).
 
-    Twin critics output a Gaussian return distribution ``N(Q_i(s, a), σ_i(s, a)²)``. Each critic's mean is regressed
-    on the target ``y = r + γ (1 - done) (min_j Q̄_j(s', a') - α log π̄(a'|s'))``, ``a' ~ π̄(·|s')`` from the target
-    policy, its standard deviation on the return sampled from the same target critic, bounded to ``±3 ω̄`` around
-    ``Q`` (``ω̄`` the running mean of its ``σ``), both weighted by ``ω̄²`` over ``σ² + ε`` (:func:`critic_loss`). The
-    tanh-Gaussian actor is trained as SAC's, with SAC's temperature ``α`` learned towards ``target_entropy``; actor,
-    ``α`` and targets are updated once every ``policy_delay`` critic updates, from gradients computed before that
-    update's critic step. The defaults are the authors'; the documentation page lists where this class departs from
-    their code.
+    Twin critics of Gaussian returns ``N(Q_i, σ_i²)``, each mean regressed on the expected-value target and each
+    standard deviation on a bounded sampled one (:func:`distributional_targets`, :func:`critic_loss`), ``a'`` from a
+    target policy; a tanh-Gaussian actor and temperature ``α`` trained as SAC's, with target networks, every
+    ``policy_delay`` critic updates. The defaults are the authors'.
 
-    SB3's arguments (``policy``, ``env``, ``learning_rate`` (of the actor and the critics), ``buffer_size``,
-    ``learning_starts``, ``batch_size``, ``tau`` (of the target critics and policy), ``gamma``, ``train_freq``,
-    ``gradient_steps``, ``action_noise``, ``replay_buffer_class``, ``replay_buffer_kwargs``,
-    ``optimize_memory_usage``, ``n_steps``, ``stats_window_size``, ``tensorboard_log``, ``verbose``, ``seed``,
-    ``device``, ``_init_setup_model``) are those of SB3's SAC; the others:
+    Its other arguments are those of SB3's ``SAC`` (``learning_rate``: of the actor and the critics; ``tau``: of the
+    target critics and policy); its own:
 
     :param ent_coef: Entropy temperature ``α``: ``"auto"`` learns it from ``α = e`` (``log α = 1``, the authors'
         start), ``"auto_<x>"`` from ``α = x > 0`` (``"auto_1"`` is SB3's SAC), a number ``>= 0`` keeps it fixed
@@ -238,12 +206,8 @@ class DSAC(TwinCriticAlgorithm):
                 self.logger.record(f"train/running_std{index}", value)
 
     def _update(self, replay_data: ReplayBufferSamples) -> dict[str, float]:
-        """
-        One DSAC-T update: the critics' step, and every ``policy_delay`` updates the actor's, ``α``'s and the target
-        networks'. All gradients are computed before any step, as in the authors' code.
-
-        :return: The values to log
-        """
+        """The critics' step, and every ``policy_delay`` updates the actor's, ``α``'s and the targets', all gradients
+        computed before any step, as in the authors' code."""
         # The actor, α and the targets move at the first update, then every `policy_delay` (the authors' counter from 0)
         update_actor = (self._n_updates - 1) % self.policy_delay == 0
         # For n-step replay, discount factor is gamma**n_steps (when no early termination)

@@ -173,10 +173,7 @@ class DSACPolicy(TwinCriticPolicy):
 
     def __init__(
         self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        *,
+        *args: Any,
         net_arch: list[int] | dict[str, list[int]] | None = None,
         activation_fn: type[nn.Module] = nn.GELU,
         log_std_min: float = -20.0,
@@ -196,9 +193,7 @@ class DSACPolicy(TwinCriticPolicy):
                 f"n_critics={n_critics!r} must be 2"
             )
         super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
+            *args,
             net_arch=[256, 256, 256] if net_arch is None else net_arch,
             activation_fn=activation_fn,
             n_critics=n_critics,
