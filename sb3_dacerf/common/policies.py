@@ -45,6 +45,8 @@ class Actor(BasePolicy, ABC):
     action_space: spaces.Box
     #: The network of the state features, built by the subclass
     network: nn.Sequential
+    #: The subclass's own constructor arguments, saved with the actor from the attributes of their names
+    own_arguments: ClassVar[tuple[str, ...]] = ()
 
     def __init__(
         self,
@@ -75,6 +77,7 @@ class Actor(BasePolicy, ABC):
             features_dim=self.features_dim,
             activation_fn=self.activation_fn,
             features_extractor=self.features_extractor,
+            **{name: getattr(self, name) for name in self.own_arguments},
         )
         return data
 

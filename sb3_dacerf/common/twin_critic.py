@@ -1,5 +1,6 @@
 """The base class of the package's algorithms, between SB3's ``OffPolicyAlgorithm`` and DACER-F, DACER and DSAC."""
 
+import inspect
 import math
 import warnings
 from abc import abstractmethod
@@ -11,6 +12,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBufferSamples
 from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BaseModel, BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
@@ -23,6 +25,7 @@ from sb3_dacerf.common.validation import (
     NonFiniteLossError,
     initial_ent_coef,
     integer_at_least,
+    made_env,
     resolve_target_entropy,
 )
 
@@ -31,12 +34,8 @@ SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAl
 
 @contextmanager
 def frozen(parameters: Iterable[th.nn.Parameter]) -> Iterator[None]:
-    """
-    Stop gradients from reaching ``parameters`` inside the block (they still flow through them to the inputs),
-    so that e.g. ``∇_a Q(s, a)`` costs no parameter gradients and the critic's ``.grad`` stays untouched.
-
-    :param parameters: Parameters to freeze; those already frozen stay frozen afterwards
-    """
+    """Stop gradients from reaching ``parameters`` inside the block (they still flow through them to the inputs);
+    those already frozen stay frozen afterwards."""
     to_restore = [param for param in parameters if param.requires_grad]
     for param in to_restore:
         param.requires_grad_(False)
@@ -51,7 +50,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
     """
     Base of the algorithms of this package: an actor ``policy.actor`` that samples actions in [-1, 1], twin critics
     ``policy.critic`` with targets ``policy.critic_target``, and a temperature ``α`` (``ent_coef``) fixed or learned
-    towards ``target_entropy``. It adds no constructor argument; saving and loading come from
+    towards ``target_entropy``. Saving and loading come from
     :class:`~sb3_dacerf.common.persistence.TwinCriticPersistence`.
 
     It holds what the algorithms share: the checks, each with an error that names the problem and the fix (the
@@ -83,6 +82,20 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
     ent_coef: str | float
     target_entropy: str | float
     ent_coef_optimizer: th.optim.Adam | None = None
+
+    def __init__(self, arguments: dict[str, Any]):
+        """
+        :param arguments: The arguments of the algorithm's constructor (its ``locals()``), of which those of SB3's
+            ``OffPolicyAlgorithm`` go there (``env`` checked by :func:`~sb3_dacerf.common.validation.made_env`)
+        """
+        names = inspect.signature(OffPolicyAlgorithm).parameters.keys() - {"env"}
+        super().__init__(
+            **{name: value for name, value in arguments.items() if name in names},
+            env=made_env(arguments["env"], type(self).__name__, arguments["verbose"]),  # type: ignore[arg-type]
+            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
+            support_multi_env=True,
+            sde_support=False,
+        )
 
     def _check_hyperparameters(self) -> None:
         """Check every hyper-parameter of ``hyperparameter_rules``, and ``ent_coef``: a ``ValueError`` names the first
@@ -270,17 +283,13 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         )
         if self.logger.name_to_value:
             # Written, then kept readable in logger.name_to_value as after SB3's learn() (dump() would clear them)
-            tables: tuple[dict[str, Any], ...] = (
-                self.logger.name_to_value,
-                self.logger.name_to_count,
-                self.logger.name_to_excluded,
-            )
+            logger = self.logger
+            tables: tuple[dict[str, Any], ...] = (logger.name_to_value, logger.name_to_count, logger.name_to_excluded)
             logged = [dict(table) for table in tables]
             self.dump_logs()
             for table, values in zip(tables, logged, strict=True):
                 table.update(values)
         if self._n_updates == n_updates and self.num_timesteps > self._num_timesteps_at_start:
-            name = type(self).__name__
             if self.num_timesteps <= self.learning_starts:
                 cause = (
                     f"learning_starts={self.learning_starts} was not reached ({self.num_timesteps} steps in all): train "
@@ -289,8 +298,8 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
             else:
                 cause = f"check train_freq={self.train_freq} and gradient_steps={self.gradient_steps}"
             warnings.warn(
-                f"{name}.learn() took {self.num_timesteps - self._num_timesteps_at_start} environment steps without a "
-                f"single gradient step, so the policy did not learn anything: {cause}.",
+                f"{type(self).__name__}.learn() took {self.num_timesteps - self._num_timesteps_at_start} environment steps "
+                f"without a single gradient step, so the policy did not learn anything: {cause}.",
                 stacklevel=2,
             )
         return self

@@ -8,7 +8,7 @@ from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 
 from sb3_dacerf.common.policies import EnsembleCritic, twin_critic_loss
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
-from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least, made_env
+from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least
 from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
 from sb3_dacerf.dacer.policies import CnnPolicy, DACERPolicy, DiffusionActor, MlpPolicy, MultiInputPolicy
 
@@ -83,32 +83,7 @@ class DACER(TwinCriticAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        super().__init__(
-            policy,
-            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
-            learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            train_freq=train_freq,
-            gradient_steps=gradient_steps,
-            action_noise=action_noise,
-            replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
-            verbose=verbose,
-            seed=seed,
-            device=device,
-            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
-            support_multi_env=True,
-            sde_support=False,
-        )
+        super().__init__(locals())
 
         # The default written into a copy of policy_kwargs, so that a saved model records it
         self.policy_kwargs = {"n_diffusion_steps": 20, **self.policy_kwargs}

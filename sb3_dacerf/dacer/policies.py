@@ -39,6 +39,8 @@ class DiffusionActor(GenerativeActor):
     :param time_embedding_dim: Size of the sinusoidal time embedding
     """
 
+    own_arguments = ("n_diffusion_steps", "time_embedding_dim")
+
     def __init__(self, *args: Any, n_diffusion_steps: int = 20, time_embedding_dim: int = 16, **kwargs: Any):
         super().__init__(*args, **kwargs)
         self.n_diffusion_steps = n_diffusion_steps
@@ -75,11 +77,6 @@ class DiffusionActor(GenerativeActor):
         input_dim = self.features_dim + self.action_dim + time_embedding_dim
         self.network = nn.Sequential(*create_mlp(input_dim, self.action_dim, self.net_arch, self.activation_fn))
 
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update(n_diffusion_steps=self.n_diffusion_steps, time_embedding_dim=self.time_embedding_dim)
-        return data
-
     @property
     def noise_shape(self) -> tuple[int, ...]:
         """``(n_diffusion_steps, action_dim)``: the start ``x_T`` and the posterior noise of each reverse step."""
@@ -98,13 +95,7 @@ class DiffusionActor(GenerativeActor):
         return self.time_net(self.time_sinusoids)
 
     def sample(self, features: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
-        """
-        Run the reverse diffusion process from noise to action.
-
-        :param features: State features ``(batch, features_dim)``
-        :param noise: ``(batch, n_diffusion_steps, action_dim)``, see the class description; ``None`` for the mean path
-        :return: Actions in [-1, 1], differentiable with respect to the networks through all the steps
-        """
+        """The reverse diffusion process from ``noise`` (see the class description; ``None``: the mean path)."""
         batch_size = features.shape[0]
         time_embeddings = self.time_embeddings().unbind(0)
         if noise is None:

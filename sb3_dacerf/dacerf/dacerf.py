@@ -11,7 +11,7 @@ from torch.nn import functional as F
 
 from sb3_dacerf.common.policies import EnsembleCritic, twin_critic_loss
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
-from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least, made_env
+from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least
 from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, FlowActor, MinQActionGradient, MlpPolicy, MultiInputPolicy
 
 #: The weightings of the two terms of the actor loss (``flow_matching_weights``), see :func:`actor_loss_weights`
@@ -97,32 +97,7 @@ class DACERF(TwinCriticAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        super().__init__(
-            policy,
-            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
-            learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            train_freq=train_freq,
-            gradient_steps=gradient_steps,
-            action_noise=action_noise,
-            replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
-            verbose=verbose,
-            seed=seed,
-            device=device,
-            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
-            support_multi_env=True,
-            sde_support=False,
-        )
+        super().__init__(locals())
 
         self.policy_delay = policy_delay
         self.langevin_steps = langevin_steps

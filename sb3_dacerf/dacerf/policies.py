@@ -28,6 +28,8 @@ class FlowActor(GenerativeActor):
     :param n_sampling_steps: Number of Euler steps from noise to action
     """
 
+    own_arguments = ("n_sampling_steps",)
+
     def __init__(self, *args: Any, n_sampling_steps: int = 1, **kwargs: Any):
         super().__init__(*args, **kwargs)
         self.n_sampling_steps = n_sampling_steps
@@ -38,33 +40,19 @@ class FlowActor(GenerativeActor):
             *create_mlp(self.features_dim + self.action_dim + 1, self.action_dim, self.net_arch, self.activation_fn)
         )
 
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update(n_sampling_steps=self.n_sampling_steps)
-        return data
-
     @property
     def noise_shape(self) -> tuple[int, ...]:
         """``(action_dim,)``: the flow's starting point ``a_0``."""
         return (self.action_dim,)
 
     def velocity(self, features: th.Tensor, actions: th.Tensor, time: th.Tensor) -> th.Tensor:
-        """
-        :param features: State features ``(batch, features_dim)``
-        :param actions: Points ``a_t`` on the probability path ``(batch, action_dim)``
-        :param time: Times ``t`` in [0, 1] ``(batch, 1)``
-        :return: The velocity ``v_θ(s, a_t, t)`` ``(batch, action_dim)``
-        """
+        """The velocity ``v_θ(s, a_t, t)`` at state features ``(batch, features_dim)``, points ``a_t`` on the path
+        ``(batch, action_dim)`` and times ``t`` in [0, 1] ``(batch, 1)``."""
         return self.network(th.cat([features, actions, time], dim=1))
 
     def sample(self, features: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
-        """
-        Integrate the flow from ``noise`` (``a_0``) with ``n_sampling_steps`` Euler steps at ``t = k / N``.
-
-        :param features: State features ``(batch, features_dim)``
-        :param noise: Starting points ``a_0`` ``(batch, action_dim)``; ``None`` for ``a_0 = 0``
-        :return: Actions in [-1, 1] (:meth:`squash`), differentiable with respect to the velocity network
-        """
+        """Integrate the flow from ``noise`` ``a_0`` (``None``: zeros) with ``n_sampling_steps`` Euler steps at
+        ``t = k / N``, then :meth:`squash`."""
         if noise is None:
             noise = th.zeros((features.shape[0], self.action_dim), device=features.device, dtype=features.dtype)
         actions = noise

@@ -11,7 +11,7 @@ from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
-from sb3_dacerf.common.validation import HyperparameterRule, made_env
+from sb3_dacerf.common.validation import HyperparameterRule
 from sb3_dacerf.dsac.policies import CnnPolicy, DSACPolicy, GaussianActor, GaussianCritic, MlpPolicy, MultiInputPolicy
 
 # The constants of DSAC-T's critic loss, as in the authors' code
@@ -147,32 +147,7 @@ class DSAC(TwinCriticAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        super().__init__(
-            policy,
-            made_env(env, type(self).__name__, verbose),  # type: ignore[arg-type]  # SB3's load() passes env=None
-            learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            train_freq=train_freq,
-            gradient_steps=gradient_steps,
-            action_noise=action_noise,
-            replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
-            verbose=verbose,
-            seed=seed,
-            device=device,
-            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
-            support_multi_env=True,
-            sde_support=False,
-        )
+        super().__init__(locals())
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
         self.alpha_learning_rate = alpha_learning_rate
@@ -217,17 +192,14 @@ class DSAC(TwinCriticAlgorithm):
         with th.no_grad():
             # a' ~ π̄(·|s') from the target policy; both target critics' distributions at (s', a')
             next_actions, next_log_prob = self.actor_target.action_log_prob(replay_data.next_observations)
-            (next_mean_1, next_std_1), (next_mean_2, next_std_2) = self.critic_target.distributions(
-                replay_data.next_observations, next_actions
-            )
-            normals = [th.randn_like(next_mean_1), th.randn_like(next_mean_2)]
+            next_distributions = self.critic_target.distributions(replay_data.next_observations, next_actions)
             target_mean, target_sample = distributional_targets(
                 replay_data.rewards,
                 (1 - replay_data.dones) * discounts,
-                ((next_mean_1, next_std_1), (next_mean_2, next_std_2)),
+                next_distributions,
                 next_log_prob.reshape(-1, 1),
                 ent_coef,
-                normals,
+                [th.randn_like(mean) for mean, _ in next_distributions],
             )
 
         distributions = self.critic.distributions(replay_data.observations, replay_data.actions)
@@ -251,7 +223,6 @@ class DSAC(TwinCriticAlgorithm):
         self.critic.optimizer.zero_grad()
         loss.backward()
 
-        log_prob: th.Tensor | None = None
         if update_actor:
             # J_π = E[α log π(a|s) - min_j Q_j(s, a)], a ~ π(·|s) reparameterised; the critics receive no gradient
             actions, log_prob = self.actor.action_log_prob(replay_data.observations)
@@ -265,7 +236,6 @@ class DSAC(TwinCriticAlgorithm):
 
         self.critic.optimizer.step()
         if update_actor:
-            assert log_prob is not None
             self.actor.optimizer.step()
             if self.ent_coef_optimizer is not None:
                 logs["ent_coef_loss"] = self._update_temperature(logs["entropy"])

@@ -29,6 +29,8 @@ class GaussianActor(Actor):
     :param log_std_max: Upper clip of ``log σ`` (0.5, the authors'; SB3's SAC uses 2)
     """
 
+    own_arguments = ("log_std_min", "log_std_max")
+
     def __init__(self, *args: Any, log_std_min: float = -20.0, log_std_max: float = 0.5, **kwargs: Any):
         super().__init__(*args, **kwargs)
         if not (math.isfinite(log_std_min) and math.isfinite(log_std_max) and log_std_min < log_std_max):
@@ -39,11 +41,6 @@ class GaussianActor(Actor):
         self.log_std_min = float(log_std_min)
         self.log_std_max = float(log_std_max)
         self.network = nn.Sequential(*create_mlp(self.features_dim, 2 * self.action_dim, self.net_arch, self.activation_fn))
-
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update(log_std_min=self.log_std_min, log_std_max=self.log_std_max)
-        return data
 
     @property
     def noise_shape(self) -> tuple[int, ...]:
