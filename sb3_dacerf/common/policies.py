@@ -1,7 +1,4 @@
-"""
-What the policies of the package share: the actor bases, the ensemble critics (every critic's layer one batched
-matrix product) and the twin-critic policy that holds an actor, its critics and their targets.
-"""
+"""The policies' parts: the actor bases, the ensemble critics and the twin-critic policy that holds them."""
 
 import functools
 from abc import ABC, abstractmethod
@@ -12,12 +9,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBufferSamples
 from stable_baselines3.common.policies import BaseModel, BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.torch_layers import (
-    BaseFeaturesExtractor,
-    FlattenExtractor,
-    create_mlp,
-    get_actor_critic_arch,
-)
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, FlattenExtractor, create_mlp, get_actor_critic_arch
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
@@ -174,13 +166,8 @@ class EnsembleLinear(nn.Module):
 
 
 class EnsembleLayerNorm(nn.Module):
-    """
-    ``LayerNorm`` over the last dimension with an affine transform of its own for each member.
-
-    :param n_members: Number of members (critics)
-    :param num_features: Size of the normalised dimension
-    :param eps: Added to the variance, as in ``nn.LayerNorm``
-    """
+    """``LayerNorm`` of ``num_features`` over the last dimension with an affine transform of its own for each of
+    ``n_members`` members (critics)."""
 
     def __init__(self, n_members: int, num_features: int, eps: float = 1e-5):
         super().__init__()
@@ -199,14 +186,9 @@ class EnsembleLayerNorm(nn.Module):
 
 class EnsembleBatchRenorm(nn.Module):
     """
-    Batch renormalisation (Ioffe 2017) with running statistics and an affine transform of its own for each member:
-    the computation of sb3-contrib's ``BatchRenorm1d`` (CrossQ's), member by member.
-
-    :param n_members: Number of members (critics)
-    :param num_features: Number of features
-    :param eps: Added to the variance
-    :param momentum: Rate of the running averages
-    :param warmup_steps: Steps of plain batch normalisation before the renormalisation
+    Batch renormalisation (Ioffe 2017) of ``num_features`` with running statistics and an affine transform of its own
+    for each of ``n_members`` members: the computation of sb3-contrib's ``BatchRenorm1d`` (CrossQ's, with the same
+    arguments), member by member.
     """
 
     ra_mean: th.Tensor
@@ -258,10 +240,7 @@ class EnsembleBatchRenorm(nn.Module):
         return self.scale.unsqueeze(1) * normalised + self.bias.unsqueeze(1)
 
     def extra_repr(self) -> str:
-        return (
-            f"n_members={self.n_members}, num_features={self.num_features}, momentum={self.momentum}, "
-            f"warmup_steps={self.warmup_steps}"
-        )
+        return f"n_members={self.n_members}, num_features={self.num_features}, momentum={self.momentum}"
 
 
 def ensemble_of(modules: list[nn.Module]) -> nn.Module:
@@ -320,11 +299,7 @@ class EnsembleCritic(BaseModel):
         self.ensemble = nn.Sequential(*[ensemble_of(list(layers)) for layers in zip(*members, strict=True)])
 
     def q_values_of_features(self, features: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        """
-        :param features: State features ``(batch, features_dim)``
-        :param actions: Actions ``(batch, action_dim)``
-        :return: Every critic's ``Q_j(s, a)``, ``(n_critics, batch, 1)``
-        """
+        """Every critic's ``Q_j(s, a)`` ``(n_critics, batch, 1)`` from the state features."""
         return self.ensemble(th.cat([features, actions], dim=1))
 
     def q_values(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
@@ -421,9 +396,9 @@ class TwinCriticPolicy(BasePolicy):
     their actor class in ``actor_class`` and pass its own keyword arguments in ``actor_kwargs``; ``CnnPolicy`` and
     ``MultiInputPolicy`` set ``default_features_extractor_class``.
 
-    Takes the arguments of SB3's ``SACPolicy`` but those of gSDE (``net_arch`` ``[256, 256]`` by default,
-    ``features_extractor_class`` ``default_features_extractor_class`` by default, ``optimizer_class`` a class or its
-    name: ``"Adam"``, ``"AdamW"``, ``"RAD"``, ...), and:
+    Takes the arguments of SB3's ``SACPolicy`` but those of gSDE (``None`` for ``net_arch``, ``activation_fn`` and
+    ``features_extractor_class``: the class attributes ``default_*``; ``optimizer_class`` a class or its name:
+    ``"Adam"``, ``"AdamW"``, ``"RAD"``, ...), and:
 
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
     :param critic: The critics' networks: ``"mlp"`` (SB3's MLPs: :class:`EnsembleCritic`), ``"layer_norm"``
@@ -433,6 +408,8 @@ class TwinCriticPolicy(BasePolicy):
 
     actor_class: ClassVar[type[Actor]]
     default_features_extractor_class: ClassVar[type[BaseFeaturesExtractor]] = FlattenExtractor
+    default_net_arch: ClassVar[tuple[int, ...]] = (256, 256)
+    default_activation_fn: ClassVar[type[nn.Module]] = nn.ReLU
     critic_classes: ClassVar[dict[str, type[EnsembleCritic]]] = {
         "mlp": EnsembleCritic,
         "layer_norm": LayerNormCritic,
@@ -447,8 +424,9 @@ class TwinCriticPolicy(BasePolicy):
         observation_space: spaces.Space,
         action_space: spaces.Box,
         lr_schedule: Schedule,
+        *,
         net_arch: list[int] | dict[str, list[int]] | None = None,
-        activation_fn: type[nn.Module] = nn.ReLU,
+        activation_fn: type[nn.Module] | None = None,
         features_extractor_class: type[BaseFeaturesExtractor] | None = None,
         features_extractor_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = True,
@@ -471,27 +449,18 @@ class TwinCriticPolicy(BasePolicy):
             squash_output=True,
             normalize_images=normalize_images,
         )
-        self.net_arch = [256, 256] if net_arch is None else net_arch
-        self.activation_fn = activation_fn
+        self.net_arch = list(self.default_net_arch) if net_arch is None else net_arch
+        self.activation_fn = activation_fn = activation_fn or self.default_activation_fn
         self.share_features_extractor = share_features_extractor
         #: The ``critic`` argument (``self.critic`` is the critics' module)
         self.critic_kind = critic
         #: ``actor_kwargs``, saved with the policy's other arguments
         self.actor_options = actor_kwargs or {}
         actor_arch, critic_arch = get_actor_critic_arch(self.net_arch)
-        shared = dict(
-            observation_space=self.observation_space,
-            action_space=self.action_space,
-            activation_fn=activation_fn,
-            normalize_images=normalize_images,
-        )
-        self.actor_kwargs = {**shared, "net_arch": actor_arch, **self.actor_options}
-        self.critic_kwargs = {
-            **shared,
-            "net_arch": critic_arch,
-            "n_critics": n_critics,
-            "share_features_extractor": share_features_extractor,
-        }
+        shared = dict(observation_space=self.observation_space, action_space=self.action_space, normalize_images=normalize_images)
+        self.actor_kwargs = {**shared, "activation_fn": activation_fn, "net_arch": actor_arch, **self.actor_options}
+        self.critic_kwargs = {**shared, "activation_fn": activation_fn, "net_arch": critic_arch, "n_critics": n_critics}
+        self.critic_kwargs.update(share_features_extractor=share_features_extractor)
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:

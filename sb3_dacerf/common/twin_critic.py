@@ -50,14 +50,9 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
     """
     Base of the algorithms of this package: an actor ``policy.actor`` that samples actions in [-1, 1], twin critics
     ``policy.critic`` with targets ``policy.critic_target``, and a temperature ``α`` (``ent_coef``) fixed or learned
-    towards ``target_entropy``. Saving and loading come from
-    :class:`~sb3_dacerf.common.persistence.TwinCriticPersistence`.
-
-    It holds what the algorithms share: the checks, each with an error that names the problem and the fix (the
-    hyper-parameters, before the model is built; the observations; non-finite losses), the temperature, the loop of
-    ``train()`` over the subclass's :meth:`_update`, the Polyak update of the targets, and ``learn()``'s final logs.
-    A subclass adds its own rules to ``hyperparameter_rules`` and overrides :meth:`_check_hyperparameters` for checks
-    a range cannot express.
+    towards ``target_entropy``, updated with the actor every ``policy_delay`` critic updates. It holds what the
+    algorithms share: the checks (hyper-parameters, observations, non-finite losses), the temperature, ``train()``'s
+    loop over the subclass's :meth:`_update`, the Polyak update of the targets, and ``learn()``'s final logs.
     """
 
     #: Valid values of the numeric hyper-parameters: name -> rule. The value checked is the entry of
@@ -84,10 +79,8 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
     ent_coef_optimizer: th.optim.Adam | None = None
 
     def __init__(self, arguments: dict[str, Any]):
-        """
-        :param arguments: The arguments of the algorithm's constructor (its ``locals()``), of which those of SB3's
-            ``OffPolicyAlgorithm`` go there (``env`` checked by :func:`~sb3_dacerf.common.validation.made_env`)
-        """
+        """:param arguments: The algorithm's constructor's ``locals()``: those of SB3's ``OffPolicyAlgorithm`` go there
+        (``env`` checked by :func:`~sb3_dacerf.common.validation.made_env`), the shared hyper-parameters become attributes"""
         names = inspect.signature(OffPolicyAlgorithm).parameters.keys() - {"env"}
         super().__init__(
             **{name: value for name, value in arguments.items() if name in names},
@@ -96,6 +89,9 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
             support_multi_env=True,
             sde_support=False,
         )
+        self.policy_delay = arguments["policy_delay"]
+        self.ent_coef = arguments["ent_coef"]
+        self.target_entropy = arguments["target_entropy"]
 
     def _check_hyperparameters(self) -> None:
         """Check every hyper-parameter of ``hyperparameter_rules``, and ``ent_coef``: a ``ValueError`` names the first
@@ -128,10 +124,8 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         return self.actor.log_alpha  # type: ignore[return-value]
 
     def _setup_temperature(self, auto_target_entropy: float, learning_rate: float) -> None:
-        """
-        Set ``log α`` from ``ent_coef``, resolve ``target_entropy``, and create the temperature's optimizer (Adam,
-        ``learning_rate``) when ``α`` is learned.
-        """
+        """Set ``log α`` from ``ent_coef``, resolve ``target_entropy``, and create the temperature's optimizer (Adam,
+        ``learning_rate``) when ``α`` is learned."""
         self.target_entropy = resolve_target_entropy(self.target_entropy, auto_target_entropy)
         alpha = initial_ent_coef(self.ent_coef, self.auto_ent_coef, self.ent_coef_values)
         with th.no_grad():
@@ -140,13 +134,8 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         self.ent_coef_optimizer = th.optim.Adam([self.log_alpha], lr=learning_rate) if isinstance(self.ent_coef, str) else None
 
     def _update_temperature(self, entropy: float) -> float:
-        """
-        One step of ``log α`` on SAC's temperature loss ``J(α) = log α (H - H_target)``, whose gradient shrinks the
-        noise while the policy is more random than the target.
-
-        :param entropy: The entropy estimate ``H``
-        :return: ``J(α)`` after the step, to log
-        """
+        """One step of ``log α`` on SAC's temperature loss ``J(α) = log α (H - H_target)``, ``H`` the ``entropy``
+        estimate (``α`` shrinks while the policy is more random than the target); returns ``J(α)`` after the step."""
         assert self.ent_coef_optimizer is not None
         ent_coef_loss = self.log_alpha * (entropy - float(self.target_entropy))
         self.ent_coef_optimizer.zero_grad()

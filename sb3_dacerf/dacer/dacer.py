@@ -87,10 +87,7 @@ class DACER(TwinCriticAlgorithm):
 
         # The default written into a copy of policy_kwargs, so that a saved model records it
         self.policy_kwargs = {"n_diffusion_steps": 20, **self.policy_kwargs}
-        self.policy_delay = policy_delay
-        self.ent_coef = ent_coef
         self.alpha_learning_rate = alpha_learning_rate
-        self.target_entropy = target_entropy
         self.alpha_update_interval = alpha_update_interval
         self.entropy_samples = entropy_samples
         # Last entropy estimate, for the logs

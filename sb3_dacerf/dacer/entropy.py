@@ -7,11 +7,7 @@ import torch as th
 
 @th.no_grad()
 def gaussian_mixture_entropy(
-    samples: th.Tensor,
-    n_components: int = 3,
-    n_iterations: int = 100,
-    tolerance: float = 1e-3,
-    min_variance: float = 1e-6,
+    samples: th.Tensor, n_components: int = 3, n_iterations: int = 100, tolerance: float = 1e-3, min_variance: float = 1e-6
 ) -> th.Tensor:
     """
     DACER's entropy estimate ``H ≈ Σ_k w_k H(N(μ_k, Σ_k)) - Σ_k w_k log w_k`` of a Gaussian mixture with diagonal

@@ -23,17 +23,12 @@ def vp_betas(n_steps: int) -> np.ndarray:
 class DiffusionActor(GenerativeActor):
     """
     Diffusion actor of DACER: a noise-prediction network ``ε_θ(s, x_t, t)`` (:attr:`network`) and its DDPM reverse
-    process. ``n_diffusion_steps`` reverse steps from ``x_T``: at each step the predicted clean action
-    ``x̂_0 = (x_t - sqrt(1 - ᾱ_t) ε_θ) / sqrt(ᾱ_t)`` is clipped to [-1, 1] and ``x_{t-1}`` drawn from the Gaussian
-    posterior ``q(x_{t-1} | x_t, x̂_0)`` (no noise at the last step).
-
-    The noise :meth:`sample` takes, ``(batch, n_diffusion_steps, action_dim)``, holds all the randomness of the
-    reverse process: ``x_T = noise[:, 0]``, and ``noise[:, t]`` the posterior noise of the step from ``x_t`` to
-    ``x_{t-1}``, ``t = 1 .. T-1``. ``deterministic=True`` (``noise=None``) follows the mean path: ``x_T = 0``, no
-    posterior noise and no exploration noise.
-
-    Takes the arguments of :class:`~sb3_dacerf.common.policies.GenerativeActor` (``activation_fn`` also that of the
-    time embedding), and:
+    process of ``n_diffusion_steps`` steps, each clipping the predicted clean action
+    ``x̂_0 = (x_t - sqrt(1 - ᾱ_t) ε_θ) / sqrt(ᾱ_t)`` to [-1, 1] and drawing ``x_{t-1}`` from the posterior
+    ``q(x_{t-1} | x_t, x̂_0)``. Its noise ``(batch, n_diffusion_steps, action_dim)`` holds ``x_T = noise[:, 0]`` and
+    the posterior noise ``noise[:, t]`` of the step from ``x_t``, ``t = 1 .. T-1`` (none at the last step);
+    ``noise=None`` follows the mean path. Takes the arguments of :class:`~sb3_dacerf.common.policies.GenerativeActor`
+    (``activation_fn`` also that of the time embedding), and:
 
     :param n_diffusion_steps: Number of diffusion steps ``T`` (network calls per action)
     :param time_embedding_dim: Size of the sinusoidal time embedding
@@ -126,21 +121,11 @@ class DACERPolicy(TwinCriticPolicy):
     critic: EnsembleCritic
     critic_target: EnsembleCritic
 
-    def __init__(
-        self,
-        *args: Any,
-        net_arch: list[int] | dict[str, list[int]] | None = None,
-        activation_fn: type[nn.Module] = nn.Mish,
-        n_diffusion_steps: int = 20,
-        **kwargs: Any,
-    ):
-        super().__init__(
-            *args,
-            net_arch=[256, 256, 256] if net_arch is None else net_arch,
-            activation_fn=activation_fn,
-            actor_kwargs=dict(n_diffusion_steps=n_diffusion_steps),
-            **kwargs,
-        )
+    default_net_arch = (256, 256, 256)
+    default_activation_fn = nn.Mish
+
+    def __init__(self, *args: Any, n_diffusion_steps: int = 20, **kwargs: Any):
+        super().__init__(*args, actor_kwargs=dict(n_diffusion_steps=n_diffusion_steps), **kwargs)
 
 
 MlpPolicy = DACERPolicy

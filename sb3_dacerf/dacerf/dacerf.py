@@ -99,15 +99,12 @@ class DACERF(TwinCriticAlgorithm):
     ):
         super().__init__(locals())
 
-        self.policy_delay = policy_delay
         self.langevin_steps = langevin_steps
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
         self.langevin_normalize_gradient = langevin_normalize_gradient
         self.flow_matching_coef = flow_matching_coef
         self.flow_matching_weights = flow_matching_weights
-        self.ent_coef = ent_coef
-        self.target_entropy = target_entropy
         self._n_actor_updates = 0
         # The defaults written into a copy of policy_kwargs, so that a saved model records them
         self.policy_kwargs = {"n_sampling_steps": 1, "critic": "layer_norm", **self.policy_kwargs}
@@ -156,14 +153,8 @@ class DACERF(TwinCriticAlgorithm):
             return self._langevin(MinQActionGradient(self.critic, observations), actions)
 
     def _langevin(self, gradient: MinQActionGradient, actions: th.Tensor) -> th.Tensor:
-        return langevin_targets(
-            gradient,
-            actions,
-            n_steps=self.langevin_steps,
-            step_size=self.langevin_step_size,
-            temperature=self.langevin_temperature,
-            normalize_gradient=self.langevin_normalize_gradient,
-        )
+        steps, step_size, temperature = self.langevin_steps, self.langevin_step_size, self.langevin_temperature
+        return langevin_targets(gradient, actions, steps, step_size, temperature, self.langevin_normalize_gradient)
 
     def actor_loss_terms(self, replay_data: Any) -> dict[str, th.Tensor]:
         """

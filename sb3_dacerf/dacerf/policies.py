@@ -93,7 +93,7 @@ class DACERFPolicy(TwinCriticPolicy):
     critic_target: EnsembleCritic
 
     def __init__(self, *args: Any, n_sampling_steps: int = 1, **kwargs: Any):
-        activation_fn = kwargs.get("activation_fn", nn.ReLU)
+        activation_fn = kwargs.get("activation_fn") or self.default_activation_fn
         if activation_fn not in ACTIVATION_BACKWARDS:
             raise ValueError(
                 f"DACERF's critics take activation_fn={', '.join(cls.__name__ for cls in ACTIVATION_BACKWARDS)} (the "

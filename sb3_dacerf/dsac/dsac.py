@@ -148,10 +148,7 @@ class DSAC(TwinCriticAlgorithm):
         _init_setup_model: bool = True,
     ):
         super().__init__(locals())
-        self.ent_coef = ent_coef
-        self.target_entropy = target_entropy
         self.alpha_learning_rate = alpha_learning_rate
-        self.policy_delay = policy_delay
         self.tau_b = tau if tau_b is None else tau_b
         #: Running means ``ω̄_i`` of the critics' standard deviations (``None`` before the first update)
         self.running_std: list[float] | None = None

@@ -18,12 +18,10 @@ TANH_EPSILON = 1e-6
 
 class GaussianActor(Actor):
     """
-    Tanh-Gaussian actor of DSAC: ``a = tanh(u)``, ``u ~ N(μ(s), σ(s)²)``, with ``μ`` and ``log σ`` the two halves of
-    the output of one network (:attr:`network`, as the authors' ``mlp_shared`` policy) and ``log σ`` clipped to
-    ``[log_std_min, log_std_max]``. The Gaussian is the exploration: no noise is added on top. Its noise is the
-    standard normal ``ξ`` of ``u = μ + σ ξ``.
-
-    Takes the arguments of :class:`~sb3_dacerf.common.policies.Actor`, and:
+    Tanh-Gaussian actor of DSAC: ``a = tanh(u)``, ``u = μ(s) + σ(s) ξ``, ``ξ ~ N(0, I)`` its noise, with ``μ`` and
+    ``log σ`` the two halves of the output of one network (:attr:`network`, as the authors' ``mlp_shared`` policy)
+    and ``log σ`` clipped to ``[log_std_min, log_std_max]``. Takes the arguments of
+    :class:`~sb3_dacerf.common.policies.Actor`, and:
 
     :param log_std_min: Lower clip of ``log σ`` (-20, the authors' and SB3's)
     :param log_std_max: Upper clip of ``log σ`` (0.5, the authors'; SB3's SAC uses 2)
@@ -47,32 +45,20 @@ class GaussianActor(Actor):
         return (self.action_dim,)
 
     def distribution_parameters(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """
-        :param features: State features ``(batch, features_dim)``
-        :return: ``μ`` and the clipped ``log σ`` of the Gaussian before the tanh, each ``(batch, action_dim)``
-        """
+        """``μ`` and the clipped ``log σ`` of the Gaussian before the tanh, each ``(batch, action_dim)``."""
         mean, log_std = self.network(features).chunk(2, dim=-1)
         return mean, log_std.clamp(self.log_std_min, self.log_std_max)
 
     def sample(self, features: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
-        """
-        :param features: State features ``(batch, features_dim)``
-        :param noise: ``ξ`` ``(batch, action_dim)`` (or a batch of 1); ``None`` for the deterministic ``tanh(μ)``
-        :return: ``tanh(μ + σ ξ)`` in [-1, 1], differentiable with respect to the network
-        """
+        """``tanh(μ + σ ξ)``, ``ξ`` the ``noise`` ``(batch or 1, action_dim)``; ``None``: ``tanh(μ)``."""
         mean, log_std = self.distribution_parameters(features)
         if noise is None:
             return th.tanh(mean)
         return th.tanh(mean + log_std.exp() * noise)
 
     def sample_with_log_prob(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """
-        A reparameterised sample and its log-density.
-
-        :param features: State features ``(batch, features_dim)``
-        :return: Actions ``a = tanh(u)`` in [-1, 1] ``(batch, action_dim)`` and ``log π(a|s) = log N(u; μ, σ²) -
-            Σ log(1 - tanh(u)² + 1e-6)`` ``(batch,)``, both differentiable with respect to the network
-        """
+        """A reparameterised sample ``a = tanh(u)`` ``(batch, action_dim)`` and its log-density
+        ``log π(a|s) = log N(u; μ, σ²) - Σ log(1 - tanh(u)² + 1e-6)`` ``(batch,)``."""
         mean, log_std = self.distribution_parameters(features)
         std = log_std.exp()
         gaussian = mean + std * th.randn_like(mean)
@@ -89,11 +75,9 @@ class GaussianActor(Actor):
 class GaussianCritic(BaseModel):
     """
     Twin distributional critics of DSAC: each network ``qf<j>`` outputs the mean ``Q(s, a)`` and the standard
-    deviation ``σ(s, a) = softplus(·)`` of a Gaussian return distribution (the authors' ``ActionValueDistri``).
-
-    Called like SB3's ``ContinuousCritic`` it returns the means only, one ``(batch, 1)`` tensor per network, so that
-    code written for a Q-function (``q1_forward``) reads the expected values; :meth:`distributions` returns the means
-    and the standard deviations. Same arguments as SB3's ``ContinuousCritic``, and:
+    deviation ``σ(s, a) = softplus(·)`` of a Gaussian return (the authors' ``ActionValueDistri``). Called like SB3's
+    ``ContinuousCritic`` it returns the means; :meth:`distributions` returns the means and the standard deviations.
+    Same arguments as SB3's ``ContinuousCritic``, and:
 
     :param layer_norm: ``LayerNorm`` after every hidden linear layer (before the activation)
     """
@@ -129,19 +113,12 @@ class GaussianCritic(BaseModel):
         self.q_networks = nn.ModuleList(networks)
 
     def distributions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[tuple[th.Tensor, th.Tensor], ...]:
-        """
-        :param obs: Observations
-        :param actions: Actions in [-1, 1]
-        :return: One ``(mean, std)`` pair per network, each ``(batch, 1)``; ``std = softplus(·) > 0``
-        """
+        """One ``(mean, std)`` pair per network, each ``(batch, 1)``, at observations and actions in [-1, 1]."""
         with th.set_grad_enabled(not self.share_features_extractor):
             features = self.extract_features(obs, self.features_extractor)
         qvalue_input = th.cat([features, actions], dim=1)
-        outputs = []
-        for q_net in self.q_networks:
-            mean, raw_std = q_net(qvalue_input).chunk(2, dim=-1)
-            outputs.append((mean, F.softplus(raw_std)))
-        return tuple(outputs)
+        outputs = [q_net(qvalue_input).chunk(2, dim=-1) for q_net in self.q_networks]
+        return tuple((mean, F.softplus(raw_std)) for mean, raw_std in outputs)
 
     def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
         return tuple(mean for mean, _ in self.distributions(obs, actions))
@@ -168,11 +145,12 @@ class DSACPolicy(TwinCriticPolicy):
     critic: GaussianCritic
     critic_target: GaussianCritic
 
+    default_net_arch = (256, 256, 256)
+    default_activation_fn = nn.GELU
+
     def __init__(
         self,
         *args: Any,
-        net_arch: list[int] | dict[str, list[int]] | None = None,
-        activation_fn: type[nn.Module] = nn.GELU,
         log_std_min: float = -20.0,
         log_std_max: float = 0.5,
         n_critics: int = 2,
@@ -191,8 +169,6 @@ class DSACPolicy(TwinCriticPolicy):
             )
         super().__init__(
             *args,
-            net_arch=[256, 256, 256] if net_arch is None else net_arch,
-            activation_fn=activation_fn,
             n_critics=n_critics,
             critic=critic,
             actor_kwargs=dict(log_std_min=log_std_min, log_std_max=log_std_max),
