@@ -80,11 +80,7 @@ class Actor(BasePolicy, ABC):
 
     @abstractmethod
     def sample(self, features: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
-        """
-        :param features: State features ``(batch, features_dim)``
-        :param noise: ``(batch, *noise_shape)``, e.g. from :meth:`draw_noise`; ``None`` for zeros
-        :return: Actions in [-1, 1] ``(batch, action_dim)``, differentiable with respect to the network
-        """
+        """Actions in [-1, 1] ``(batch, action_dim)`` from state features and noise ``(batch, *noise_shape)``."""
 
     def draw_noise(self, features: th.Tensor) -> th.Tensor:
         """Standard normal noise ``(batch, *noise_shape)`` for :meth:`sample`, on the device and dtype of ``features``."""
@@ -153,10 +149,7 @@ class EnsembleLinear(nn.Module):
         self.bias = nn.Parameter(th.stack([linear.bias.detach() for linear in linears]))
 
     def forward(self, x: th.Tensor) -> th.Tensor:
-        """
-        :param x: ``(batch, in_features)``, the same input for every member, or ``(n_members, batch, in_features)``
-        :return: ``(n_members, batch, out_features)``
-        """
+        """``(n_members, batch, out_features)`` from ``(batch, in_features)`` or ``(n_members, batch, in_features)``."""
         if x.dim() == 2:
             x = x.expand(self.n_members, *x.shape)
         return th.baddbmm(self.bias.unsqueeze(1), x, self.weight)
@@ -215,10 +208,7 @@ class EnsembleBatchRenorm(nn.Module):
         return gain, self.bias - gain * self.ra_mean
 
     def forward(self, x: th.Tensor) -> th.Tensor:
-        """
-        :param x: ``(batch, num_features)`` (the same input for every member) or ``(n_members, batch, num_features)``
-        :return: ``(n_members, batch, num_features)``
-        """
+        """``(n_members, batch, num_features)`` from ``(batch, num_features)`` or ``(n_members, batch, num_features)``."""
         if self.training:
             batch_mean = x.mean(dim=-2)
             batch_var = x.var(dim=-2)

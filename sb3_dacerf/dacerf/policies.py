@@ -106,22 +106,6 @@ class DACERFPolicy(TwinCriticPolicy):
 _Block = tuple[th.Tensor, th.Tensor, EnsembleLayerNorm | None, nn.Module]
 
 
-def _layer_norm_forward(norm: EnsembleLayerNorm, z: th.Tensor) -> tuple[th.Tensor, tuple[th.Tensor, th.Tensor, th.Tensor]]:
-    """The ensemble ``LayerNorm`` with autograd's own kernel, also returning what its backward needs (input, mean, 1/σ)."""
-    normalised, mean, inv_std = th.native_layer_norm(z, (norm.num_features,), None, None, norm.eps)
-    return th.addcmul(norm.bias.unsqueeze(1), normalised, norm.weight.unsqueeze(1)), (z, mean, inv_std)
-
-
-def _layer_norm_backward(
-    norm: EnsembleLayerNorm, grad: th.Tensor, cache: tuple[th.Tensor, th.Tensor, th.Tensor], member: int, rows: th.Tensor
-) -> th.Tensor:
-    """dQ/dz from dQ/dy of ``y = LayerNorm(z)`` for one member at the samples ``rows``, with autograd's own kernel."""
-    z, mean, inv_std = (tensor[member].index_select(0, rows) for tensor in cache)
-    return th.ops.aten.native_layer_norm_backward(
-        grad * norm.weight[member], z, (norm.num_features,), mean, inv_std, None, None, [True, False, False]
-    )[0]
-
-
 class MinQActionGradient:
     """
     ``∇_a min_j Q_j(s, a)`` of the ensemble ``critic`` at the fixed states ``observations``: the gradient of DACER-F's
@@ -131,7 +115,6 @@ class MinQActionGradient:
     """
 
     def __init__(self, critic: EnsembleCritic, observations: PyTorchObs):
-        self.critic = critic
         #: ``min_j Q_j(s, a)`` at the actions of the first call (the Langevin loop's start), ``(batch, 1)``, detached
         self.start_min_q: th.Tensor | None = None
         with th.no_grad():
@@ -169,8 +152,11 @@ class MinQActionGradient:
             weight, _, norm, activation = self.blocks[index]
             z, norm_cache = saved[index]
             gradient = ACTIVATION_BACKWARDS[type(activation)](activation, gradient, z[member].index_select(0, rows))
-            if norm is not None and norm_cache is not None:  # both or neither
-                gradient = _layer_norm_backward(norm, gradient, norm_cache, member, rows)
+            if norm is not None and norm_cache is not None:  # both or neither: dQ/dz of y = LayerNorm(z), autograd's kernel
+                z_in, mean, inv_std = (tensor[member].index_select(0, rows) for tensor in norm_cache)
+                gradient = th.ops.aten.native_layer_norm_backward(
+                    gradient * norm.weight[member], z_in, (norm.num_features,), mean, inv_std, None, None, [True, False, False]
+                )[0]
             gradient = gradient @ (self.action_weight if index == 0 else weight)[member].t()
         return gradient
 
@@ -189,8 +175,9 @@ class MinQActionGradient:
             else:
                 z = th.baddbmm(bias.unsqueeze(1), hidden, weight)
             norm_cache = None
-            if norm is not None:
-                z, norm_cache = _layer_norm_forward(norm, z)
+            if norm is not None:  # with autograd's kernel, keeping what its backward needs (input, mean, 1/σ)
+                normalised, mean, inv_std = th.native_layer_norm(z, (norm.num_features,), None, None, norm.eps)
+                z, norm_cache = th.addcmul(norm.bias.unsqueeze(1), normalised, norm.weight.unsqueeze(1)), (z, mean, inv_std)
             saved.append((z, norm_cache))
             hidden = activation(z)
         return th.baddbmm(self.output_bias.unsqueeze(1), hidden, self.output_weight), saved
@@ -214,11 +201,9 @@ def written_out_layers(critic: EnsembleCritic) -> tuple[list[_Block], tuple[th.T
             bias: th.Tensor = module.bias
             if pending is not None:
                 gain, shift = pending
-                with th.no_grad():
-                    weight, bias = (
-                        weight * gain.unsqueeze(2),
-                        th.baddbmm(bias.unsqueeze(1), shift.unsqueeze(1), weight).squeeze(1),
-                    )
+                with th.no_grad():  # W (g x + c) + b = (W g) x + (W c + b)
+                    bias = th.baddbmm(bias.unsqueeze(1), shift.unsqueeze(1), weight).squeeze(1)
+                    weight = weight * gain.unsqueeze(2)
                 pending = None
             layers.append([weight, bias, None, None])
         elif isinstance(module, EnsembleLayerNorm) and layers and layers[-1][2:] == [None, None]:

@@ -110,12 +110,7 @@ class DSAC(TwinCriticAlgorithm):
     actor_target: GaussianActor
     critic: GaussianCritic
     critic_target: GaussianCritic
-    #: ``ent_coef="auto"`` starts from ``α = e`` (``log α = 1``), as the authors' code (SB3's SAC starts at ``α = 1``)
-    auto_ent_coef = math.e
-    ent_coef_values = (
-        "'auto' (learned from α = e, the authors' log α = 1), 'auto_<initial α > 0>' (e.g. 'auto_1', SB3's SAC start) "
-        "or a number >= 0 (a fixed α)"
-    )
+    auto_ent_coef = math.e  # log α = 1, as the authors' code (SB3's SAC starts at α = 1)
 
     def __init__(
         self,
