@@ -22,16 +22,12 @@ CRITICS = ("mlp", "layer_norm", "batch_renorm")
 
 class Actor(BasePolicy, ABC):
     """
-    Base of the actors of this package: a network of the state features (built by the subclass) that turns noise
-    into an action in [-1, 1]; the algorithm rescales [-1, 1] to the action space's bounds.
-
-    - :meth:`sample` ``(features, noise=None)``: the action, a deterministic function of the noise, differentiable
-      with respect to the network; ``noise=None`` is the noise's mean (zeros): the deterministic action.
-    - :meth:`draw_noise` ``(features)``: standard normal noise for :meth:`sample`, ``(batch, *noise_shape)``.
-    - :meth:`act` ``(features, deterministic=False)`` and ``forward(obs, deterministic=False)``: ``sample(features)``
-      if deterministic, else ``add_exploration_noise(sample(features, draw_noise(features)))``.
-
-    Takes the arguments of SB3's SAC ``Actor`` but those of gSDE (``net_arch``: the network's hidden layer sizes).
+    Base of the actors of this package: :meth:`sample` turns state features and noise into actions in [-1, 1] (the
+    algorithm rescales them to the action space's bounds), a deterministic function of the noise, differentiable with
+    respect to the network; ``noise=None``, the noise's mean, gives the deterministic action. :meth:`act` (from
+    features) and ``forward`` (from observations) return ``sample(features)`` if deterministic, else
+    ``add_exploration_noise(sample(features, draw_noise(features)))``. Takes the arguments of SB3's SAC ``Actor`` but
+    those of gSDE (``net_arch``: the network's hidden layer sizes).
     """
 
     action_space: spaces.Box
@@ -105,12 +101,9 @@ class Actor(BasePolicy, ABC):
 
 class GenerativeActor(Actor):
     """
-    Base of the generative actors (DACER-F's :class:`~sb3_dacerf.dacerf.policies.FlowActor`, DACER's
-    :class:`~sb3_dacerf.dacer.policies.DiffusionActor`): a network of (state features, action, time), and Gaussian
-    exploration noise ``clip(a + exploration_noise_scale · α · ξ, -1, 1)``, ``ξ ~ N(0, I)``, on stochastic actions,
-    with the temperature ``α = exp(log_alpha)`` that the algorithm sets and learns (no noise at ``log_alpha = -inf``).
-    A generative policy has no tractable log-density: each algorithm estimates its entropy from samples. Takes the
-    arguments of :class:`Actor`.
+    Base of the generative actors (DACER-F's, DACER's): a network of (state features, action, time), and exploration
+    noise ``clip(a + exploration_noise_scale · α · ξ, -1, 1)``, ``ξ ~ N(0, I)``, on stochastic actions, with the
+    temperature ``α = exp(log_alpha)`` that the algorithm sets and learns. Takes the arguments of :class:`Actor`.
     """
 
     #: Standard deviation of the exploration noise at ``α = 1``
@@ -382,9 +375,8 @@ def _cat_observations(first: PyTorchObs, second: PyTorchObs) -> PyTorchObs:
 
 class TwinCriticPolicy(BasePolicy):
     """
-    Policy class (an actor, twin critics and their targets) of the algorithms of this package. Subclasses name
-    their actor class in ``actor_class`` and pass its own keyword arguments in ``actor_kwargs``; ``CnnPolicy`` and
-    ``MultiInputPolicy`` set ``default_features_extractor_class``.
+    Policy class (an actor, twin critics and their targets) of the algorithms of this package: subclasses name their
+    actor class in ``actor_class`` and pass its own keyword arguments in ``actor_kwargs``.
 
     Takes the arguments of SB3's ``SACPolicy`` but those of gSDE (``None`` for ``net_arch``, ``activation_fn`` and
     ``features_extractor_class``: the class attributes ``default_*``; ``optimizer_class`` a class or its name:

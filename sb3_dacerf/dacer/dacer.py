@@ -81,7 +81,6 @@ class DACER(TwinCriticAlgorithm):
         _init_setup_model: bool = True,
     ):
         super().__init__(locals())
-
         # The default written into a copy of policy_kwargs, so that a saved model records it
         self.policy_kwargs = {"n_diffusion_steps": 20, **self.policy_kwargs}
         self.alpha_learning_rate = alpha_learning_rate

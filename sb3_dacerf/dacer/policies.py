@@ -6,7 +6,7 @@ import torch as th
 from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN, create_mlp
 from torch import nn
 
-from sb3_dacerf.common.policies import EnsembleCritic, GenerativeActor, TwinCriticPolicy
+from sb3_dacerf.common.policies import GenerativeActor, TwinCriticPolicy
 
 
 def vp_betas(n_steps: int) -> np.ndarray:
@@ -118,8 +118,6 @@ class DACERPolicy(TwinCriticPolicy):
 
     actor_class = DiffusionActor
     actor: DiffusionActor
-    critic: EnsembleCritic
-    critic_target: EnsembleCritic
 
     default_net_arch = (256, 256, 256)
     default_activation_fn = nn.Mish

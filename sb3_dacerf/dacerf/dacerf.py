@@ -98,7 +98,6 @@ class DACERF(TwinCriticAlgorithm):
         _init_setup_model: bool = True,
     ):
         super().__init__(locals())
-
         self.langevin_steps = langevin_steps
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
@@ -202,11 +201,8 @@ class DACERF(TwinCriticAlgorithm):
 
     @staticmethod
     def imitation_targets(replay_data: Any, targets: th.Tensor, weights: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """
-        The flow-matching targets of a batch and their weights ``(batch, 1)``: the Langevin targets ``a*`` with the
-        weights ``λ_f``, unless the batch's own ``imitation_targets(targets, weights)`` method decides (the batches of
-        a :class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer` with ``demonstration_targets="actions"``).
-        """
+        """The flow-matching targets and weights of a batch: the Langevin targets ``a*`` and ``λ_f``, unless the batch's
+        own ``imitation_targets`` decides (:class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer`'s)."""
         choose = getattr(replay_data, "imitation_targets", None)
         return (targets, weights) if choose is None else choose(targets, weights)
 
@@ -251,11 +247,8 @@ class DACERF(TwinCriticAlgorithm):
 
     @th.no_grad()
     def _entropy_and_spread(self, features: th.Tensor, n_states: int = 32, n_samples: int = 8) -> tuple[float, float]:
-        """
-        Entropy estimate of the noisy policy and the flow's ``action_spread``, from ``n_samples`` actions at each of
-        ``n_states`` states: the entropy of a diagonal Gaussian fitted to each state's actions plus the exploration
-        noise, and the standard deviation of the actions (0: a deterministic flow), averaged over the states.
-        """
+        """The entropy of a diagonal Gaussian fitted to ``n_samples`` actions of each of ``n_states`` states, plus the
+        exploration noise, and the flow's ``action_spread`` (the actions' standard deviation), averaged over the states."""
         features = features[:n_states].repeat_interleave(n_samples, dim=0)
         actions = self.actor.sample(features, self.actor.draw_noise(features))
         flow_variance = actions.view(-1, n_samples, self.actor.action_dim).var(dim=1)  # (n_states, action_dim)

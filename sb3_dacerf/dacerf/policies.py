@@ -89,8 +89,6 @@ class DACERFPolicy(TwinCriticPolicy):
 
     actor_class = FlowActor
     actor: FlowActor
-    critic: EnsembleCritic
-    critic_target: EnsembleCritic
 
     def __init__(self, *args: Any, n_sampling_steps: int = 1, **kwargs: Any):
         activation_fn = kwargs.get("activation_fn") or self.default_activation_fn

@@ -1,5 +1,5 @@
 import math
-from typing import Any
+from typing import Any, cast
 
 import torch as th
 from gymnasium import spaces
@@ -123,11 +123,6 @@ class GaussianCritic(BaseModel):
     def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
         return tuple(mean for mean, _ in self.distributions(obs, actions))
 
-    def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        with th.no_grad():
-            features = self.extract_features(obs, self.features_extractor)
-        return self.q_networks[0](th.cat([features, actions], dim=1))[:, :1]
-
 
 class DSACPolicy(TwinCriticPolicy):
     """
@@ -178,9 +173,7 @@ class DSACPolicy(TwinCriticPolicy):
     def _build(self, lr_schedule: Schedule) -> None:
         super()._build(lr_schedule)
         # Target policy network of DSAC-T: a' ~ π̄(·|s') in the critic target
-        actor_target = self.make_actor(features_extractor=None)
-        assert isinstance(actor_target, GaussianActor)  # actor_class
-        self.actor_target = actor_target
+        self.actor_target = cast(GaussianActor, self.make_actor(features_extractor=None))
         self.actor_target.load_state_dict(self.actor.state_dict())
         self.actor_target.set_training_mode(False)
 
