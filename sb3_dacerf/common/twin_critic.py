@@ -84,7 +84,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         names = inspect.signature(OffPolicyAlgorithm).parameters.keys() - {"env"}
         super().__init__(
             **{name: value for name, value in arguments.items() if name in names},
-            env=made_env(arguments["env"], type(self).__name__, arguments["verbose"]),  # type: ignore[arg-type]
+            env=made_env(arguments["env"], type(self).__name__, arguments["verbose"]),  # type: ignore[arg-type]  # None on load()
             supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
             support_multi_env=True,
             sde_support=False,
