@@ -9,7 +9,7 @@ import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_dacerf import DACER
-from sb3_dacerf.dacer.entropy import gaussian_mixture_entropy
+from sb3_dacerf.dacer.dacer import gaussian_mixture_entropy
 from sb3_dacerf.dacer.policies import vp_betas
 
 

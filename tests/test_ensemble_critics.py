@@ -85,11 +85,9 @@ def trained_model(critics: str, seed: int = 0) -> DACERF:
     return model
 
 
-def test_ensemble_linear_initialises_each_member_as_nn_linear():
-    th.manual_seed(0)
-    ensemble = EnsembleLinear(3, 5, 4)
-    th.manual_seed(0)
+def test_ensemble_linear_holds_and_computes_as_its_linear_layers():
     linears = [nn.Linear(5, 4) for _ in range(3)]
+    ensemble = EnsembleLinear(linears)
     for member, linear in enumerate(linears):
         assert th.equal(ensemble.weight[member], linear.weight.t()) and th.equal(ensemble.bias[member], linear.bias)
     x = th.randn(7, 5)

@@ -1,9 +1,5 @@
-"""
-What the package's algorithms share: the base class (:mod:`.twin_critic`), the actor base, ensemble critics and
-twin-critic policy (:mod:`.policies`), their checks (:mod:`.validation`) and saving (:mod:`.persistence`).
-:class:`DemonstrationReplayBuffer` keeps demonstrations apart from the agent's transitions and draws a fixed share of
-every batch from them.
-"""
+"""What the algorithms share: base class (:mod:`.twin_critic`), policies' parts (:mod:`.policies`), checks
+(:mod:`.validation`), saving (:mod:`.persistence`), and a replay buffer that keeps demonstrations apart."""
 
 from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 

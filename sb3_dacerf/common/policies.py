@@ -1,10 +1,6 @@
-"""
-What the policies of the package share: the generative actor base of DACER-F and DACER, the ensemble critics (every
-critic's layer one batched matrix product) and the twin-critic policy that holds an actor, its critics and their
-targets.
-"""
+"""The policies' parts: the actor bases, the ensemble critics and the twin-critic policy that holds them."""
 
-import math
+import functools
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -13,12 +9,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBufferSamples
 from stable_baselines3.common.policies import BaseModel, BasePolicy
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.torch_layers import (
-    BaseFeaturesExtractor,
-    FlattenExtractor,
-    create_mlp,
-    get_actor_critic_arch,
-)
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, FlattenExtractor, create_mlp, get_actor_critic_arch
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
@@ -29,45 +20,21 @@ from sb3_dacerf.common.optim import get_optimizer_class
 CRITICS = ("mlp", "layer_norm", "batch_renorm")
 
 
-class GenerativeActor(BasePolicy, ABC):
+class Actor(BasePolicy, ABC):
     """
-    Base of the actors of this package (:class:`sb3_dacerf.dacerf.policies.FlowActor` of DACERF,
-    :class:`sb3_dacerf.dacer.policies.DiffusionActor` of DACER): a generator that turns noise into an action in
-    [-1, 1] with a network ``network`` of (state features, action, time), and Gaussian exploration noise on top
-    (``squash_output``: the algorithm rescales [-1, 1] to the action space's bounds).
-
-    The contract both actors follow:
-
-    - ``forward(obs, deterministic=False)``: actions in [-1, 1], as SB3's actors (``predict``, rollouts, the
-      critic target); :meth:`act` does the same from state features.
-    - :meth:`sample` ``(features, noise=None)``: the generator alone, a deterministic function of the noise,
-      differentiable with respect to the network, without exploration noise. ``noise=None`` is the noise's mean
-      (zeros): the deterministic action.
-    - :meth:`draw_noise` ``(features)``: random noise for :meth:`sample`, of shape ``(batch, *noise_shape)``.
-    - :meth:`add_exploration_noise` ``(actions)``: ``clip(a + exploration_std · ξ, -1, 1)``, ``ξ ~ N(0, I)``,
-      with ``exploration_std = exploration_noise_scale · exp(log_alpha)`` (none when ``log_alpha = -inf``).
-
-    Stochastic actions are ``add_exploration_noise(sample(features, draw_noise(features)))``; deterministic actions
-    are ``sample(features)``. A generative policy has no tractable log-density, hence no ``action_log_prob``: each
-    algorithm estimates the policy's entropy from samples.
-
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param net_arch: Hidden layer sizes of the network
-    :param features_extractor: Network to extract features
-        (a CNN when using images, a nn.Flatten() layer otherwise)
-    :param features_dim: Number of features
-    :param activation_fn: Activation function
-    :param normalize_images: Whether to normalize images or not,
-         dividing by 255.0 (True by default)
-    :param exploration_noise_scale: Standard deviation of the exploration noise at ``α = exp(log_alpha) = 1``
+    Base of the actors of this package: :meth:`sample` turns state features and noise into actions in [-1, 1] (the
+    algorithm rescales them to the action space's bounds), a deterministic function of the noise, differentiable with
+    respect to the network; ``noise=None``, the noise's mean, gives the deterministic action. :meth:`act` (from
+    features) and ``forward`` (from observations) return ``sample(features)`` if deterministic, else
+    ``add_exploration_noise(sample(features, draw_noise(features)))``. Takes the arguments of SB3's SAC ``Actor`` but
+    those of gSDE (``net_arch``: the network's hidden layer sizes).
     """
 
     action_space: spaces.Box
-    #: The generator's network of (state features, action, time), built by the subclass
+    #: The network of the state features, built by the subclass
     network: nn.Sequential
-    #: ``log α`` of the entropy regulator, set (and learned, by its own optimizer) by the algorithm
-    log_alpha: nn.Parameter
+    #: The subclass's own constructor arguments, saved with the actor from the attributes of their names
+    own_arguments: ClassVar[tuple[str, ...]] = ()
 
     def __init__(
         self,
@@ -78,7 +45,6 @@ class GenerativeActor(BasePolicy, ABC):
         features_dim: int,
         activation_fn: type[nn.Module] = nn.ReLU,
         normalize_images: bool = True,
-        exploration_noise_scale: float = 0.15,
     ):
         super().__init__(
             observation_space,
@@ -91,21 +57,15 @@ class GenerativeActor(BasePolicy, ABC):
         self.features_dim = features_dim
         self.activation_fn = activation_fn
         self.action_dim = get_action_dim(self.action_space)
-        self.exploration_noise_scale = exploration_noise_scale
-        # The temperature log α = 0 (α = 1) until the algorithm sets it: a parameter of the actor, whose exploration
-        # noise it scales (saved with the policy), trained by the algorithm's own optimizer when α is learned
-        self.log_alpha = nn.Parameter(th.zeros(()), requires_grad=False)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
         data.update(
-            dict(
-                net_arch=self.net_arch,
-                features_dim=self.features_dim,
-                activation_fn=self.activation_fn,
-                features_extractor=self.features_extractor,
-                exploration_noise_scale=self.exploration_noise_scale,
-            )
+            net_arch=self.net_arch,
+            features_dim=self.features_dim,
+            activation_fn=self.activation_fn,
+            features_extractor=self.features_extractor,
+            **{name: getattr(self, name) for name in self.own_arguments},
         )
         return data
 
@@ -116,45 +76,18 @@ class GenerativeActor(BasePolicy, ABC):
 
     @abstractmethod
     def sample(self, features: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
-        """
-        Generate actions from noise, without exploration noise.
-
-        :param features: State features ``(batch, features_dim)``
-        :param noise: ``(batch, *noise_shape)``, e.g. from :meth:`draw_noise`; ``None`` for zeros (the deterministic
-            action)
-        :return: Actions in [-1, 1] ``(batch, action_dim)``, differentiable with respect to the network
-        """
+        """Actions in [-1, 1] ``(batch, action_dim)`` from state features and noise ``(batch, *noise_shape)``."""
 
     def draw_noise(self, features: th.Tensor) -> th.Tensor:
-        """
-        :param features: State features ``(batch, features_dim)``, for the batch size, device and dtype
-        :return: Standard normal noise ``(batch, *noise_shape)`` for :meth:`sample`
-        """
+        """Standard normal noise ``(batch, *noise_shape)`` for :meth:`sample`, on the device and dtype of ``features``."""
         return th.randn((features.shape[0], *self.noise_shape), device=features.device, dtype=features.dtype)
 
-    @property
-    def exploration_std(self) -> th.Tensor:
-        """Standard deviation of the exploration noise added to stochastic actions: ``exploration_noise_scale · α``."""
-        return self.exploration_noise_scale * self.log_alpha.exp()
-
     def add_exploration_noise(self, actions: th.Tensor) -> th.Tensor:
-        """
-        :param actions: Actions in [-1, 1]
-        :return: ``clip(actions + exploration_std · ξ, -1, 1)`` with ``ξ ~ N(0, I)``; ``actions`` itself when
-            ``log_alpha = -inf`` (no noise drawn)
-        """
-        if self.log_alpha.item() == float("-inf"):
-            return actions
-        return (actions + self.exploration_std * th.randn_like(actions)).clamp(-1.0, 1.0)
+        """Exploration added to stochastic actions: none here."""
+        return actions
 
     def act(self, features: th.Tensor, deterministic: bool = False) -> th.Tensor:
-        """
-        The policy's actions from state features: :meth:`forward` after the features extractor.
-
-        :param features: State features ``(batch, features_dim)``
-        :param deterministic: ``sample(features)`` (zero noise, no exploration noise) instead of sampling
-        :return: Actions in [-1, 1] ``(batch, action_dim)``
-        """
+        """:meth:`forward` from state features ``(batch, features_dim)``: actions in [-1, 1] ``(batch, action_dim)``."""
         if deterministic:
             return self.sample(features)
         return self.add_exploration_noise(self.sample(features, self.draw_noise(features)))
@@ -166,54 +99,50 @@ class GenerativeActor(BasePolicy, ABC):
         return self(observation, deterministic)
 
 
+class GenerativeActor(Actor):
+    """
+    Base of the generative actors (DACER-F's, DACER's): a network of (state features, action, time), and exploration
+    noise ``clip(a + exploration_noise_scale · α · ξ, -1, 1)``, ``ξ ~ N(0, I)``, on stochastic actions, with the
+    temperature ``α = exp(log_alpha)`` that the algorithm sets and learns. Takes the arguments of :class:`Actor`.
+    """
+
+    #: Standard deviation of the exploration noise at ``α = 1``
+    exploration_noise_scale: ClassVar[float] = 0.15
+    #: ``log α`` of the entropy regulator, saved with the actor; the algorithm sets it and trains it with its own optimizer
+    log_alpha: nn.Parameter
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.log_alpha = nn.Parameter(th.zeros(()), requires_grad=False)
+
+    @property
+    def exploration_std(self) -> th.Tensor:
+        """Standard deviation of the exploration noise: ``exploration_noise_scale · α``."""
+        return self.exploration_noise_scale * self.log_alpha.exp()
+
+    def add_exploration_noise(self, actions: th.Tensor) -> th.Tensor:
+        """``clip(actions + exploration_std · ξ, -1, 1)``; ``actions`` itself (no draw) when ``log_alpha = -inf``."""
+        if self.log_alpha.item() == float("-inf"):
+            return actions
+        return (actions + self.exploration_std * th.randn_like(actions)).clamp(-1.0, 1.0)
+
+
 class EnsembleLinear(nn.Module):
     """
-    ``n_members`` linear layers applied in one batched product: ``y[j] = x[j] @ weight[j] + bias[j]``.
-
-    :param n_members: Number of members (critics)
-    :param in_features: Size of each input sample
-    :param out_features: Size of each output sample
+    The layers ``linears`` (with biases, all of one shape) applied in one batched product:
+    ``y[j] = x[j] @ weight[j] + bias[j]``, with a copy of their weights.
     """
 
-    def __init__(self, n_members: int, in_features: int, out_features: int):
+    def __init__(self, linears: list[nn.Linear]):
         super().__init__()
-        self._allocate(n_members, in_features, out_features)
-        self.reset_parameters()
-
-    def _allocate(self, n_members: int, in_features: int, out_features: int) -> None:
-        self.n_members, self.in_features, self.out_features = n_members, in_features, out_features
+        self.n_members, self.in_features, self.out_features = len(linears), linears[0].in_features, linears[0].out_features
         #: ``(n_members, in_features, out_features)``: member ``j`` computes ``x @ weight[j]``
-        self.weight = nn.Parameter(th.empty(n_members, in_features, out_features))
+        self.weight = nn.Parameter(th.stack([linear.weight.detach().t() for linear in linears]))
         #: ``(n_members, out_features)``
-        self.bias = nn.Parameter(th.empty(n_members, out_features))
-
-    def reset_parameters(self) -> None:
-        """Initialise each member as ``nn.Linear(in_features, out_features)`` does (the same random draws)."""
-        bound = 1 / math.sqrt(self.in_features) if self.in_features > 0 else 0.0
-        with th.no_grad():
-            for member in range(self.n_members):
-                weight = th.empty(self.out_features, self.in_features)
-                nn.init.kaiming_uniform_(weight, a=math.sqrt(5))
-                self.weight[member].copy_(weight.t())
-                nn.init.uniform_(self.bias[member], -bound, bound)
-
-    @classmethod
-    def from_members(cls, linears: list[nn.Linear]) -> "EnsembleLinear":
-        """An ensemble holding copies of the weights of ``linears`` (with biases, all of one shape)."""
-        first = linears[0]
-        ensemble = cls.__new__(cls)  # without the random initialisation, which the copies below would overwrite
-        nn.Module.__init__(ensemble)
-        ensemble._allocate(len(linears), first.in_features, first.out_features)
-        with th.no_grad():
-            ensemble.weight.copy_(th.stack([linear.weight.t() for linear in linears]))
-            ensemble.bias.copy_(th.stack([_bias(linear) for linear in linears]))
-        return ensemble
+        self.bias = nn.Parameter(th.stack([linear.bias.detach() for linear in linears]))
 
     def forward(self, x: th.Tensor) -> th.Tensor:
-        """
-        :param x: ``(batch, in_features)``, the same input for every member, or ``(n_members, batch, in_features)``
-        :return: ``(n_members, batch, out_features)``
-        """
+        """``(n_members, batch, out_features)`` from ``(batch, in_features)`` or ``(n_members, batch, in_features)``."""
         if x.dim() == 2:
             x = x.expand(self.n_members, *x.shape)
         return th.baddbmm(self.bias.unsqueeze(1), x, self.weight)
@@ -223,29 +152,14 @@ class EnsembleLinear(nn.Module):
 
 
 class EnsembleLayerNorm(nn.Module):
-    """
-    ``LayerNorm`` over the last dimension with an affine transform of its own for each member.
-
-    :param n_members: Number of members (critics)
-    :param num_features: Size of the normalised dimension
-    :param eps: Added to the variance, as in ``nn.LayerNorm``
-    """
+    """``LayerNorm`` of ``num_features`` over the last dimension with an affine transform of its own for each of
+    ``n_members`` members (critics)."""
 
     def __init__(self, n_members: int, num_features: int, eps: float = 1e-5):
         super().__init__()
         self.n_members, self.num_features, self.eps = n_members, num_features, eps
         self.weight = nn.Parameter(th.ones(n_members, num_features))
         self.bias = nn.Parameter(th.zeros(n_members, num_features))
-
-    @classmethod
-    def from_members(cls, norms: list[nn.LayerNorm]) -> "EnsembleLayerNorm":
-        """An ensemble holding copies of the affine parameters of ``norms`` (1-d, elementwise affine)."""
-        first = norms[0]
-        ensemble = cls(len(norms), first.normalized_shape[0], first.eps)
-        with th.no_grad():
-            ensemble.weight.copy_(th.stack([norm.weight for norm in norms]))
-            ensemble.bias.copy_(th.stack([norm.bias for norm in norms]))
-        return ensemble
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         """:param x: ``(n_members, batch, num_features)``"""
@@ -258,17 +172,14 @@ class EnsembleLayerNorm(nn.Module):
 
 class EnsembleBatchRenorm(nn.Module):
     """
-    Batch renormalisation (Ioffe 2017) with running statistics and an affine transform of its own for each member:
-    the computation of sb3-contrib's ``BatchRenorm1d`` (CrossQ's), member by member. In training mode it normalises
-    with the batch's statistics (corrected towards the running ones after ``warmup_steps`` steps) and updates the
-    running statistics; in evaluation mode it normalises with the running statistics.
-
-    :param n_members: Number of members (critics)
-    :param num_features: Number of features
-    :param eps: Added to the variance
-    :param momentum: Rate of the running averages
-    :param warmup_steps: Steps of plain batch normalisation before the renormalisation
+    Batch renormalisation (Ioffe 2017) of ``num_features`` with running statistics and an affine transform of its own
+    for each of ``n_members`` members: the computation of sb3-contrib's ``BatchRenorm1d`` (CrossQ's, with the same
+    arguments), member by member.
     """
+
+    ra_mean: th.Tensor
+    ra_var: th.Tensor
+    steps: th.Tensor
 
     def __init__(
         self, n_members: int, num_features: int, eps: float = 0.001, momentum: float = 0.01, warmup_steps: int = 100_000
@@ -284,33 +195,13 @@ class EnsembleBatchRenorm(nn.Module):
         self.scale = nn.Parameter(th.ones(n_members, num_features))
         self.bias = nn.Parameter(th.zeros(n_members, num_features))
 
-    ra_mean: th.Tensor
-    ra_var: th.Tensor
-    steps: th.Tensor
-
-    @classmethod
-    def from_members(cls, layers: list[Any]) -> "EnsembleBatchRenorm":
-        """An ensemble holding copies of the parameters and statistics of sb3-contrib ``BatchRenorm1d`` layers."""
-        first = layers[0]
-        if not all(layer.affine for layer in layers):
-            raise ValueError("EnsembleBatchRenorm holds affine batch renormalisations only (BatchRenorm1d(affine=True))")
-        ensemble = cls(len(layers), first.num_features, first.eps, first.momentum, first.warmup_steps)
-        with th.no_grad():
-            for name in ("scale", "bias", "ra_mean", "ra_var"):
-                getattr(ensemble, name).copy_(th.stack([getattr(layer, name) for layer in layers]))
-            ensemble.steps.copy_(first.steps)
-        return ensemble
-
     def normalisation(self) -> tuple[th.Tensor, th.Tensor]:
         """The affine map of evaluation mode, ``x -> gain * x + shift``: ``gain``, ``shift``, ``(n_members, num_features)``."""
         gain = self.scale / (self.ra_var + self.eps).sqrt()
         return gain, self.bias - gain * self.ra_mean
 
     def forward(self, x: th.Tensor) -> th.Tensor:
-        """
-        :param x: ``(batch, num_features)`` (the same input for every member) or ``(n_members, batch, num_features)``
-        :return: ``(n_members, batch, num_features)``
-        """
+        """``(n_members, batch, num_features)`` from ``(batch, num_features)`` or ``(n_members, batch, num_features)``."""
         if self.training:
             batch_mean = x.mean(dim=-2)
             batch_var = x.var(dim=-2)
@@ -332,30 +223,21 @@ class EnsembleBatchRenorm(nn.Module):
         return self.scale.unsqueeze(1) * normalised + self.bias.unsqueeze(1)
 
     def extra_repr(self) -> str:
-        return (
-            f"n_members={self.n_members}, num_features={self.num_features}, momentum={self.momentum}, "
-            f"warmup_steps={self.warmup_steps}"
-        )
+        return f"n_members={self.n_members}, num_features={self.num_features}, momentum={self.momentum}"
 
 
 def ensemble_of(modules: list[nn.Module]) -> nn.Module:
     """
-    The ensemble layer of the same layer of each member network: :class:`EnsembleLinear` of ``nn.Linear``,
-    :class:`EnsembleLayerNorm` of ``nn.LayerNorm``, :class:`EnsembleBatchRenorm` of sb3-contrib's ``BatchRenorm1d``,
-    the first module itself for parameter-free modules (activations), which act elementwise on any shape.
+    The ensemble layer of the same layer of each member network: :class:`EnsembleLinear` of ``nn.Linear`` layers,
+    else the first module (an ensemble normalisation layer, built for all the members, or an activation).
     """
     first = modules[0]
     if type(first) is nn.Linear:
-        return EnsembleLinear.from_members(modules)  # type: ignore[arg-type]
-    if type(first) is nn.LayerNorm:
-        return EnsembleLayerNorm.from_members(modules)  # type: ignore[arg-type]
-    if type(first).__name__ == "BatchRenorm1d":  # sb3-contrib's (an optional dependency)
-        return EnsembleBatchRenorm.from_members(modules)
-    if any(True for _ in first.parameters()) or any(True for _ in first.buffers()):
-        raise ValueError(
-            f"No ensemble version of {type(first).__name__}: critics are built of Linear, LayerNorm, BatchRenorm1d "
-            "and activations"
-        )
+        return EnsembleLinear(modules)  # type: ignore[arg-type]
+    if not isinstance(first, (EnsembleLayerNorm, EnsembleBatchRenorm)) and any(
+        True for _ in (*first.parameters(), *first.buffers())
+    ):
+        raise ValueError(f"No ensemble version of {type(first).__name__}: critics are built of Linear layers and activations")
     return first
 
 
@@ -363,22 +245,14 @@ class EnsembleCritic(BaseModel):
     """
     ``n_critics`` Q-networks ``Q_j(s, a) = MLP_j(concat(features(s), a))`` run as one ensemble network
     (:attr:`ensemble`: :class:`EnsembleLinear` layers with activations between them, normalisation layers in the
-    subclasses). Same arguments and interface as SB3's ``ContinuousCritic``: calling it returns one ``(batch, 1)``
-    tensor per critic; :meth:`q_values` returns them stacked.
-
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param net_arch: Hidden layer sizes of each Q-network
-    :param features_extractor: Network to extract features (a CNN when using images, a nn.Flatten() layer otherwise)
-    :param features_dim: Number of features
-    :param activation_fn: Activation function
-    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
-    :param n_critics: Number of critic networks to create.
-    :param share_features_extractor: Whether the features extractor is shared with the actor (it then gets no
-        gradient from the critic)
+    subclasses). Same arguments as SB3's ``ContinuousCritic``; calling it returns one ``(batch, 1)`` tensor per critic
+    as that does, :meth:`q_values` returns them stacked.
     """
 
     features_extractor: BaseFeaturesExtractor
+    #: Ensemble normalisation layers before and after each linear layer (``create_mlp``'s arguments of these names)
+    pre_linear_modules: ClassVar[tuple[type[nn.Module], ...]] = ()
+    post_linear_modules: ClassVar[tuple[type[nn.Module], ...]] = ()
 
     def __init__(
         self,
@@ -398,72 +272,51 @@ class EnsembleCritic(BaseModel):
         self.share_features_extractor = share_features_extractor
         self.n_critics = n_critics
         input_dim = features_dim + get_action_dim(action_space)
-        normalisation = self.normalisation_modules()
+        # Each member network as create_mlp builds it (the same random draws), its normalisation layers already ensemble
+        # layers of all the members (ensemble_of keeps the first member's)
+        normalisation: dict[str, Any] = {
+            name: [functools.partial(module, n_critics) for module in getattr(self, name)]
+            for name in ("pre_linear_modules", "post_linear_modules")
+        }
         members = [nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, **normalisation)) for _ in range(n_critics)]
         self.ensemble = nn.Sequential(*[ensemble_of(list(layers)) for layers in zip(*members, strict=True)])
 
-    @classmethod
-    def normalisation_modules(cls) -> dict[str, Any]:
-        """``pre_linear_modules`` and/or ``post_linear_modules`` of ``create_mlp`` for each member (none here)."""
-        return {}
-
-    def critic_features(self, obs: PyTorchObs) -> th.Tensor:
-        """The features of ``obs`` (without gradient to a features extractor shared with the actor)."""
-        with th.set_grad_enabled(not self.share_features_extractor):
-            return self.extract_features(obs, self.features_extractor)
-
     def q_values_of_features(self, features: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        """
-        :param features: State features ``(batch, features_dim)``
-        :param actions: Actions ``(batch, action_dim)``
-        :return: Every critic's ``Q_j(s, a)``, ``(n_critics, batch, 1)``
-        """
+        """Every critic's ``Q_j(s, a)`` ``(n_critics, batch, 1)`` from the state features."""
         return self.ensemble(th.cat([features, actions], dim=1))
 
     def q_values(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        """Every critic's ``Q_j(s, a)``, ``(n_critics, batch, 1)``."""
-        return self.q_values_of_features(self.critic_features(obs), actions)
+        """Every critic's ``Q_j(s, a)``, ``(n_critics, batch, 1)`` (no gradient to a features extractor shared with the actor)."""
+        with th.set_grad_enabled(not self.share_features_extractor):
+            features = self.extract_features(obs, self.features_extractor)
+        return self.q_values_of_features(features, actions)
 
     def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
-        """One ``(batch, 1)`` tensor per critic, as SB3's ``ContinuousCritic``."""
         return tuple(self.q_values(obs, actions).unbind(0))
-
-    def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        """The first critic's ``Q_1(s, a)``, ``(batch, 1)``, as SB3's ``ContinuousCritic.q1_forward``."""
-        return self.q_values(obs, actions)[0]
 
 
 class LayerNormCritic(EnsembleCritic):
     """
     Ensemble critics with ``LayerNorm`` after every hidden linear layer (before the activation), as in the critics
-    of BRO, SimBa and FlowRL: normalised features keep the Q-values and ``∇_a Q`` (which drives the Langevin
-    targets) on a stable scale. Same arguments as :class:`EnsembleCritic`.
+    of BRO, SimBa and FlowRL. Same arguments as :class:`EnsembleCritic`.
     """
 
-    @classmethod
-    def normalisation_modules(cls) -> dict[str, Any]:
-        return dict(post_linear_modules=[nn.LayerNorm])
+    post_linear_modules = (EnsembleLayerNorm,)
 
 
 class BatchRenormCritic(EnsembleCritic):
     """
-    Ensemble critics with CrossQ's batch renormalisation (sb3-contrib's ``BatchRenorm1d`` computation, momentum
-    0.01) before every linear layer. The layers normalise with the running statistics except while
-    :meth:`set_bn_training_mode` has them in training mode: the algorithm turns that on only for the critic update's
-    joint forward pass over ``(s, a)`` and ``(s', a')``. Same arguments as :class:`EnsembleCritic`.
+    Ensemble critics with CrossQ's batch renormalisation (:class:`EnsembleBatchRenorm`, momentum 0.01) before every
+    linear layer. The layers normalise with the running statistics except while :meth:`set_bn_training_mode` has
+    them in training mode: the algorithm turns that on only for the critic update's joint forward pass over
+    ``(s, a)`` and ``(s', a')``. Same arguments as :class:`EnsembleCritic`.
     """
+
+    pre_linear_modules = (EnsembleBatchRenorm,)
 
     def __init__(self, *args: Any, **kwargs: Any):
         super().__init__(*args, **kwargs)
         self.set_bn_training_mode(False)
-
-    @classmethod
-    def normalisation_modules(cls) -> dict[str, Any]:
-        try:
-            from sb3_contrib.common.torch_layers import BatchRenorm1d
-        except ImportError as error:
-            raise ImportError("critic='batch_renorm' uses sb3-contrib's BatchRenorm1d: pip install 'sb3-contrib>=2.4'") from error
-        return dict(pre_linear_modules=[BatchRenorm1d])
 
     def set_training_mode(self, mode: bool) -> None:
         super().set_training_mode(mode)
@@ -471,10 +324,8 @@ class BatchRenormCritic(EnsembleCritic):
         self.set_bn_training_mode(False)
 
     def set_bn_training_mode(self, mode: bool) -> None:
-        """
-        :param mode: Normalise with the batch's statistics and update the running ones (``True``), or normalise with
-            the running statistics (``False``)
-        """
+        """:param mode: Normalise with the batch's statistics and update the running ones (``True``), or normalise with
+        the running statistics (``False``)"""
         for module in self.modules():
             if isinstance(module, EnsembleBatchRenorm):
                 module.train(mode)
@@ -484,22 +335,14 @@ def twin_critic_loss(
     critic: EnsembleCritic, critic_target: EnsembleCritic, replay_data: ReplayBufferSamples, next_actions: th.Tensor, gamma: float
 ) -> th.Tensor:
     """
-    The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` on a replay batch, with the Bellman target
-    ``y = r + γ (1 - done) min_j Q̄_j(s', a')`` (the critics themselves instead of the targets with CrossQ's critics,
-    whose running statistics this pass updates).
-
-    :param critic: The critics ``Q_i``
-    :param critic_target: Their targets ``Q̄_j``
-    :param replay_data: A batch of the replay buffer
-    :param next_actions: ``a' ~ π(·|s')`` ``(batch, action_dim)``, without gradient
-    :param gamma: The discount factor (``replay_data.discounts`` replace it for n-step returns)
-    :return: The loss, differentiable with respect to the critics
+    The critic loss ``J_Q = 0.5 Σ_i mean((y - Q_i(s, a))²)`` of the critics ``Q_i`` on a replay batch, with the
+    Bellman target ``y = r + γ (1 - done) min_j Q̄_j(s', a')`` of the targets ``Q̄_j`` (of the critics themselves with
+    CrossQ's critics, whose running statistics this pass updates), ``a'`` the ``next_actions``, ``γ`` the
+    ``replay_data.discounts`` of n-step returns or else ``gamma``.
     """
-    # For n-step replay, discount factor is gamma**n_steps (when no early termination)
     discounts = replay_data.discounts if replay_data.discounts is not None else gamma
     if isinstance(critic, BatchRenormCritic):
-        # CrossQ's critics: no target networks; one forward pass over (s, a) and (s', a') so that the batch statistics
-        # are those of both, in training mode for this pass only
+        # One pass over (s, a) and (s', a'), so that the batch statistics are those of both, in training mode for it only
         critic.set_bn_training_mode(True)
         try:
             all_q_values = critic.q_values(
@@ -530,48 +373,31 @@ def _cat_observations(first: PyTorchObs, second: PyTorchObs) -> PyTorchObs:
     return th.cat([first, second], dim=0)
 
 
-def _bias(linear: nn.Linear) -> th.Tensor:
-    if linear.bias is None:
-        raise ValueError("EnsembleLinear holds linear layers with a bias only")
-    return linear.bias
-
-
 class TwinCriticPolicy(BasePolicy):
     """
-    Policy class (an actor, twin critics and their targets) of the algorithms of this package.
+    Policy class (an actor, twin critics and their targets) of the algorithms of this package: subclasses name their
+    actor class in ``actor_class`` and pass its own keyword arguments in ``actor_kwargs``.
 
-    Subclasses name their actor class in ``actor_class`` and pass its own keyword arguments in ``actor_kwargs``;
-    the actor samples actions in [-1, 1] when called on observations.
+    Takes the arguments of SB3's ``SACPolicy`` but those of gSDE (``None`` for ``net_arch``, ``activation_fn`` and
+    ``features_extractor_class``: the class attributes ``default_*``; ``optimizer_class`` a class or its name:
+    ``"Adam"``, ``"AdamW"``, ``"RAD"``, ...), and:
 
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param lr_schedule: Learning rate schedule (could be constant)
-    :param net_arch: The specification of the policy and value networks
-        (a list for both, or ``dict(pi=[...], qf=[...])``); ``[256, 256]`` by default
-    :param activation_fn: Activation function
-    :param features_extractor_class: Features extractor to use.
-    :param features_extractor_kwargs: Keyword arguments
-        to pass to the features extractor.
-    :param normalize_images: Whether to normalize images or not,
-         dividing by 255.0 (True by default)
-    :param optimizer_class: The optimizer to use, a class or its name (``"Adam"``, ``"AdamW"``, ``"RAD"``, ...);
-        ``th.optim.Adam`` by default
-    :param optimizer_kwargs: Additional keyword arguments,
-        excluding the learning rate, to pass to the optimizer
-    :param n_critics: Number of critic networks to create (run together, each layer of all of them one batched
-        matrix product: :class:`EnsembleCritic`)
-    :param share_features_extractor: Whether to share or not the features extractor
-        between the actor and the critic (this saves computation time)
     :param actor_kwargs: Keyword arguments of ``actor_class`` beyond those shared with the critics
-    :param critic: The critics' networks: ``"mlp"`` (plain MLPs, SB3's critic networks: :class:`EnsembleCritic`),
-        ``"layer_norm"`` (``LayerNorm`` after every hidden layer: :class:`LayerNormCritic`) or ``"batch_renorm"``
-        (CrossQ's critics, batch renormalisation before every linear layer: :class:`BatchRenormCritic`, needs
-        sb3-contrib; no target networks: the algorithm then bootstraps from the critics themselves, in one forward
-        pass over the current and the next state-action pairs).
+    :param critic: The critics' networks: ``"mlp"`` (SB3's MLPs: :class:`EnsembleCritic`), ``"layer_norm"``
+        (:class:`LayerNormCritic`) or ``"batch_renorm"`` (CrossQ's critics: :class:`BatchRenormCritic`, without
+        target networks: the algorithm bootstraps from the critics themselves)
     """
 
-    actor_class: ClassVar[type[BasePolicy]]
-    actor: BasePolicy
+    actor_class: ClassVar[type[Actor]]
+    default_features_extractor_class: ClassVar[type[BaseFeaturesExtractor]] = FlattenExtractor
+    default_net_arch: ClassVar[tuple[int, ...]] = (256, 256)
+    default_activation_fn: ClassVar[type[nn.Module]] = nn.ReLU
+    critic_classes: ClassVar[dict[str, type[EnsembleCritic]]] = {
+        "mlp": EnsembleCritic,
+        "layer_norm": LayerNormCritic,
+        "batch_renorm": BatchRenormCritic,
+    }
+    actor: Actor
     critic: BaseModel
     critic_target: BaseModel
 
@@ -580,9 +406,10 @@ class TwinCriticPolicy(BasePolicy):
         observation_space: spaces.Space,
         action_space: spaces.Box,
         lr_schedule: Schedule,
+        *,
         net_arch: list[int] | dict[str, list[int]] | None = None,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
+        activation_fn: type[nn.Module] | None = None,
+        features_extractor_class: type[BaseFeaturesExtractor] | None = None,
         features_extractor_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = True,
         optimizer_class: type[th.optim.Optimizer] | str = th.optim.Adam,
@@ -597,41 +424,25 @@ class TwinCriticPolicy(BasePolicy):
         super().__init__(
             observation_space,
             action_space,
-            features_extractor_class,
+            features_extractor_class or self.default_features_extractor_class,
             features_extractor_kwargs,
             optimizer_class=get_optimizer_class(optimizer_class),
             optimizer_kwargs=optimizer_kwargs,
             squash_output=True,
             normalize_images=normalize_images,
         )
-
-        if net_arch is None:
-            net_arch = [256, 256]
-
-        actor_arch, critic_arch = get_actor_critic_arch(net_arch)
-
-        self.net_arch = net_arch
-        self.activation_fn = activation_fn
-        self.net_args = {
-            "observation_space": self.observation_space,
-            "action_space": self.action_space,
-            "net_arch": actor_arch,
-            "activation_fn": self.activation_fn,
-            "normalize_images": normalize_images,
-        }
-        self.actor_kwargs = {**self.net_args, **(actor_kwargs or {})}
-        self.critic_kwargs = self.net_args.copy()
-        self.critic_kwargs.update(
-            {
-                "n_critics": n_critics,
-                "net_arch": critic_arch,
-                "share_features_extractor": share_features_extractor,
-            }
-        )
+        self.net_arch = list(self.default_net_arch) if net_arch is None else net_arch
+        self.activation_fn = activation_fn = activation_fn or self.default_activation_fn
         self.share_features_extractor = share_features_extractor
         #: The ``critic`` argument (``self.critic`` is the critics' module)
         self.critic_kind = critic
-
+        #: ``actor_kwargs``, saved with the policy's other arguments
+        self.actor_options = actor_kwargs or {}
+        actor_arch, critic_arch = get_actor_critic_arch(self.net_arch)
+        shared = dict(observation_space=self.observation_space, action_space=self.action_space, normalize_images=normalize_images)
+        self.actor_kwargs = {**shared, "activation_fn": activation_fn, "net_arch": actor_arch, **self.actor_options}
+        self.critic_kwargs = {**shared, "activation_fn": activation_fn, "net_arch": critic_arch, "n_critics": n_critics}
+        self.critic_kwargs.update(share_features_extractor=share_features_extractor)
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -642,7 +453,6 @@ class TwinCriticPolicy(BasePolicy):
             lr=lr_schedule(1),  # type: ignore[call-arg]
             **self.optimizer_kwargs,
         )
-
         if self.share_features_extractor:
             self.critic = self.make_critic(features_extractor=self.actor.features_extractor)
             # The shared features extractor is trained by the actor loss only
@@ -650,50 +460,40 @@ class TwinCriticPolicy(BasePolicy):
         else:
             self.critic = self.make_critic(features_extractor=None)
             critic_parameters = list(self.critic.parameters())
-
-        # Critic target should not share the features extractor with critic
+        # The target critics have a features extractor of their own, and stay in evaluation mode
         self.critic_target = self.make_critic(features_extractor=None)
         self.critic_target.load_state_dict(self.critic.state_dict())
-
         self.critic.optimizer = self.optimizer_class(
             critic_parameters,
             lr=lr_schedule(1),  # type: ignore[call-arg]
             **self.optimizer_kwargs,
         )
-
-        # Target networks should always be in eval mode
         self.critic_target.set_training_mode(False)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
         data.update(
-            dict(
-                net_arch=self.net_arch,
-                activation_fn=self.net_args["activation_fn"],
-                n_critics=self.critic_kwargs["n_critics"],
-                lr_schedule=self._dummy_schedule,  # dummy lr schedule, not needed for loading policy alone
-                optimizer_class=self.optimizer_class,
-                optimizer_kwargs=self.optimizer_kwargs,
-                features_extractor_class=self.features_extractor_class,
-                features_extractor_kwargs=self.features_extractor_kwargs,
-                share_features_extractor=self.share_features_extractor,
-                critic=self.critic_kind,
-            )
+            net_arch=self.net_arch,
+            activation_fn=self.activation_fn,
+            n_critics=self.critic_kwargs["n_critics"],
+            lr_schedule=self._dummy_schedule,  # dummy lr schedule, not needed for loading policy alone
+            optimizer_class=self.optimizer_class,
+            optimizer_kwargs=self.optimizer_kwargs,
+            features_extractor_class=self.features_extractor_class,
+            features_extractor_kwargs=self.features_extractor_kwargs,
+            share_features_extractor=self.share_features_extractor,
+            critic=self.critic_kind,
+            **self.actor_options,
         )
         return data
 
-    def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> BasePolicy:
+    def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
         return self.actor_class(**actor_kwargs).to(self.device)
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> BaseModel:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        critic_classes: dict[str, type[EnsembleCritic]] = {
-            "mlp": EnsembleCritic,
-            "layer_norm": LayerNormCritic,
-            "batch_renorm": BatchRenormCritic,
-        }
-        return critic_classes[self.critic_kind](**critic_kwargs).to(self.device)
+        return self.critic_classes[self.critic_kind](**critic_kwargs).to(self.device)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic=deterministic)
@@ -702,15 +502,8 @@ class TwinCriticPolicy(BasePolicy):
         return self.actor(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
-        """
-        Put the policy in either training or evaluation mode.
-
-        This affects certain modules, such as batch normalisation and dropout. Nothing is done when the actor and
-        the critic are already in that mode: ``predict()`` calls this before every action, and walking all the
-        sub-modules cost as much as the actor's forward pass (switch sub-modules through this method).
-
-        :param mode: if true, set to training mode, else set to evaluation mode
-        """
+        """Put the policy in training or evaluation mode; nothing is done when the actor and the critic are already in
+        that mode (``predict()`` calls this before every action)."""
         if self.training == self.actor.training == self.critic.training == mode:
             return
         self.actor.set_training_mode(mode)

@@ -1,10 +1,9 @@
-"""
-The base class of the package's algorithms: what DACER-F, DACER and DSAC share between SB3's ``OffPolicyAlgorithm``
-and their own ``train()``.
-"""
+"""The base class of the package's algorithms, between SB3's ``OffPolicyAlgorithm`` and DACER-F, DACER and DSAC."""
 
+import inspect
 import math
 import warnings
+from abc import abstractmethod
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
@@ -13,6 +12,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBufferSamples
 from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BaseModel, BasePolicy
 from stable_baselines3.common.type_aliases import MaybeCallback
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
@@ -25,6 +25,7 @@ from sb3_dacerf.common.validation import (
     NonFiniteLossError,
     initial_ent_coef,
     integer_at_least,
+    made_env,
     resolve_target_entropy,
 )
 
@@ -33,12 +34,8 @@ SelfTwinCriticAlgorithm = TypeVar("SelfTwinCriticAlgorithm", bound="TwinCriticAl
 
 @contextmanager
 def frozen(parameters: Iterable[th.nn.Parameter]) -> Iterator[None]:
-    """
-    Stop gradients from reaching ``parameters`` inside the block (they still flow through them to the inputs),
-    so that e.g. ``∇_a Q(s, a)`` costs no parameter gradients and the critic's ``.grad`` stays untouched.
-
-    :param parameters: Parameters to freeze; those already frozen stay frozen afterwards
-    """
+    """Stop gradients from reaching ``parameters`` inside the block (they still flow through them to the inputs);
+    those already frozen stay frozen afterwards."""
     to_restore = [param for param in parameters if param.requires_grad]
     for param in to_restore:
         param.requires_grad_(False)
@@ -51,24 +48,15 @@ def frozen(parameters: Iterable[th.nn.Parameter]) -> Iterator[None]:
 
 class TwinCriticAlgorithm(TwinCriticPersistence):
     """
-    Base of the algorithms of this package: an actor ``policy.actor`` that samples actions in [-1, 1] when called
-    on observations, twin critics ``policy.critic`` with targets ``policy.critic_target``, and a temperature ``α``
-    (``ent_coef``) fixed or learned towards ``target_entropy``.
-
-    It holds what every algorithm shares: the checks (hyper-parameter rules, the action space, non-finite losses and
-    observations, each with an error that names the problem and the fix), the temperature's set-up, the Polyak update
-    of the targets, and ``learn()``'s final logs. Subclasses take their own hyper-parameters, pass the others on to
-    this constructor, then call ``_setup_model()``, which first checks each rule of the class attribute
-    ``hyperparameter_rules`` against the hyper-parameter of its name; a subclass adds its own rules
-    (``{**TwinCriticAlgorithm.hyperparameter_rules, ...}``) and overrides :meth:`_check_hyperparameters` for checks a
-    range cannot express. Saving and loading come from :class:`~sb3_dacerf.common.persistence.TwinCriticPersistence`.
-
-    It adds no constructor argument: the algorithms pass SB3's to ``OffPolicyAlgorithm``.
+    Base of the algorithms of this package: an actor ``policy.actor`` that samples actions in [-1, 1], twin critics
+    ``policy.critic`` with targets ``policy.critic_target``, and a temperature ``α`` (``ent_coef``) fixed or learned
+    towards ``target_entropy``, updated with the actor every ``policy_delay`` critic updates. It holds what the
+    algorithms share: the checks (hyper-parameters, observations, non-finite losses), the temperature, ``train()``'s
+    loop over the subclass's :meth:`_update`, the Polyak update of the targets, and ``learn()``'s final logs.
     """
 
-    #: Valid values of the numeric hyper-parameters, checked before the model is built: name -> rule. The value
-    #: checked is the entry of ``policy_kwargs`` of that name if there is one (e.g. ``n_sampling_steps``), else the
-    #: algorithm's attribute.
+    #: Valid values of the numeric hyper-parameters: name -> rule. The value checked is the entry of
+    #: ``policy_kwargs`` of that name if there is one (e.g. ``n_sampling_steps``), else the algorithm's attribute.
     hyperparameter_rules: ClassVar[dict[str, HyperparameterRule]] = {
         "batch_size": integer_at_least(1, "a positive integer"),
         "buffer_size": integer_at_least(1, "a positive integer (the replay buffer's capacity in transitions)"),
@@ -90,18 +78,29 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
     target_entropy: str | float
     ent_coef_optimizer: th.optim.Adam | None = None
 
-    def _check_hyperparameters(self) -> None:
-        """
-        Check every hyper-parameter named in ``hyperparameter_rules``, and ``ent_coef``.
+    def __init__(self, arguments: dict[str, Any]):
+        """:param arguments: The algorithm's constructor's ``locals()``: those of SB3's ``OffPolicyAlgorithm`` go there
+        (``env`` checked by :func:`~sb3_dacerf.common.validation.made_env`), the shared hyper-parameters become attributes"""
+        names = inspect.signature(OffPolicyAlgorithm).parameters.keys() - {"env"}
+        super().__init__(
+            **{name: value for name, value in arguments.items() if name in names},
+            env=made_env(arguments["env"], type(self).__name__, arguments["verbose"]),  # type: ignore[arg-type]  # None on load()
+            supported_action_spaces=None,  # made_env() checked it, with an error that says what to do instead
+            support_multi_env=True,
+            sde_support=False,
+        )
+        self.policy_delay = arguments["policy_delay"]
+        self.ent_coef = arguments["ent_coef"]
+        self.target_entropy = arguments["target_entropy"]
 
-        :raises ValueError: naming the first invalid value and its valid range
-        """
+    def _check_hyperparameters(self) -> None:
+        """Check every hyper-parameter of ``hyperparameter_rules``, and ``ent_coef``: a ``ValueError`` names the first
+        invalid value and its valid range."""
         for name, rule in self.hyperparameter_rules.items():
             rule.check(name, self.policy_kwargs[name] if name in self.policy_kwargs else getattr(self, name))
         initial_ent_coef(self.ent_coef, self.auto_ent_coef, self.ent_coef_values)
 
     def _setup_model(self) -> None:
-        # Before anything is built: a wrong value fails here, with its valid range
         self._check_hyperparameters()
         with warnings.catch_warnings():
             if self.replay_buffer_class is NStepReplayBuffer and self.replay_buffer_kwargs.get("n_steps") == self.n_steps:
@@ -119,21 +118,51 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         self.critic = self.policy.critic
         self.critic_target = self.policy.critic_target
 
-    def _setup_temperature(self, log_alpha: th.Tensor, auto_target_entropy: float, learning_rate: float) -> None:
-        """
-        Set ``log α`` (``log_alpha``, updated in place) from ``ent_coef``, resolve ``target_entropy``, and create
-        the temperature's optimizer when ``α`` is learned.
+    @property
+    def log_alpha(self) -> th.Tensor:
+        """``log α``, the temperature: a parameter of the generative actors (it scales their exploration noise)."""
+        return self.actor.log_alpha  # type: ignore[return-value]
 
-        :param log_alpha: The leaf tensor that holds ``log α``
-        :param auto_target_entropy: The target entropy of ``target_entropy="auto"``
-        :param learning_rate: Adam's learning rate for ``log α``
-        """
+    def _setup_temperature(self, auto_target_entropy: float, learning_rate: float) -> None:
+        """Set ``log α`` from ``ent_coef``, resolve ``target_entropy``, and create the temperature's optimizer (Adam,
+        ``learning_rate``) when ``α`` is learned."""
         self.target_entropy = resolve_target_entropy(self.target_entropy, auto_target_entropy)
         alpha = initial_ent_coef(self.ent_coef, self.auto_ent_coef, self.ent_coef_values)
         with th.no_grad():
-            log_alpha.fill_(math.log(alpha) if alpha > 0 else -math.inf)
-        log_alpha.requires_grad_(isinstance(self.ent_coef, str))
-        self.ent_coef_optimizer = th.optim.Adam([log_alpha], lr=learning_rate) if isinstance(self.ent_coef, str) else None
+            self.log_alpha.fill_(math.log(alpha) if alpha > 0 else -math.inf)
+        self.log_alpha.requires_grad_(isinstance(self.ent_coef, str))
+        self.ent_coef_optimizer = th.optim.Adam([self.log_alpha], lr=learning_rate) if isinstance(self.ent_coef, str) else None
+
+    def _update_temperature(self, entropy: float) -> float:
+        """One step of ``log α`` on SAC's temperature loss ``J(α) = log α (H - H_target)``, ``H`` the ``entropy``
+        estimate (``α`` shrinks while the policy is more random than the target); returns ``J(α)`` after the step."""
+        assert self.ent_coef_optimizer is not None
+        ent_coef_loss = self.log_alpha * (entropy - float(self.target_entropy))
+        self.ent_coef_optimizer.zero_grad()
+        ent_coef_loss.backward()
+        self.ent_coef_optimizer.step()
+        return self.log_alpha.item() * (entropy - float(self.target_entropy))
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        self.policy.set_training_mode(True)  # this affects batch norm / dropout
+        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+        assert self.replay_buffer is not None, "train() needs the replay buffer that _setup_model() creates"
+        logs: dict[str, list[float]] = {}
+        for _ in range(gradient_steps):
+            self._n_updates += 1
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # actions in [-1, 1]
+            for key, value in self._update(replay_data).items():
+                logs.setdefault(key, []).append(value)
+        self.logger.record("train/n_updates", self._n_updates)
+        self.logger.record("train/ent_coef", self.log_alpha.exp().item())
+        for key, values in logs.items():
+            finite = [value for value in values if math.isfinite(value)]
+            if finite:
+                self.logger.record(f"train/{key}", np.mean(finite))
+
+    @abstractmethod
+    def _update(self, replay_data: ReplayBufferSamples) -> dict[str, float]:
+        """One gradient step on a replay batch; returns the values to log (``train()`` logs their finite means)."""
 
     def _critic_parameters(self) -> list[th.nn.Parameter]:
         """The critic's own parameters (not those of a features extractor shared with the actor), to freeze."""
@@ -194,10 +223,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         episode_start: np.ndarray | None = None,
         deterministic: bool = False,
     ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
-        """
-        See :meth:`BaseAlgorithm.predict`. An observation with NaN or infinite entries raises a ``ValueError`` that
-        names them (the policy would return NaN actions).
-        """
+        """See :meth:`BaseAlgorithm.predict`; an observation with NaN or infinite entries raises a ``ValueError``."""
         bad = non_finite_entries(observation)
         if bad is not None:
             raise ValueError(
@@ -231,11 +257,9 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         progress_bar: bool = False,
     ) -> SelfTwinCriticAlgorithm:
         """
-        See :meth:`OffPolicyAlgorithm.learn`; the TensorBoard run is named after the algorithm by default.
-
-        Unlike SB3, the values logged since the last ``log_interval`` dump are written when ``learn()`` returns (a run
-        shorter than ``log_interval`` episodes still has its ``train/*`` scalars), and a run that ended without any
-        gradient step (``learning_starts`` not reached) warns.
+        See :meth:`OffPolicyAlgorithm.learn`; the TensorBoard run is named after the algorithm by default. Unlike SB3,
+        the values logged since the last dump are written when ``learn()`` returns, and a run without any gradient
+        step warns.
         """
         n_updates = self._n_updates
         super().learn(
@@ -248,17 +272,13 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         )
         if self.logger.name_to_value:
             # Written, then kept readable in logger.name_to_value as after SB3's learn() (dump() would clear them)
-            tables: tuple[dict[str, Any], ...] = (
-                self.logger.name_to_value,
-                self.logger.name_to_count,
-                self.logger.name_to_excluded,
-            )
+            logger = self.logger
+            tables: tuple[dict[str, Any], ...] = (logger.name_to_value, logger.name_to_count, logger.name_to_excluded)
             logged = [dict(table) for table in tables]
             self.dump_logs()
             for table, values in zip(tables, logged, strict=True):
                 table.update(values)
         if self._n_updates == n_updates and self.num_timesteps > self._num_timesteps_at_start:
-            name = type(self).__name__
             if self.num_timesteps <= self.learning_starts:
                 cause = (
                     f"learning_starts={self.learning_starts} was not reached ({self.num_timesteps} steps in all): train "
@@ -267,8 +287,8 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
             else:
                 cause = f"check train_freq={self.train_freq} and gradient_steps={self.gradient_steps}"
             warnings.warn(
-                f"{name}.learn() took {self.num_timesteps - self._num_timesteps_at_start} environment steps without a "
-                f"single gradient step, so the policy did not learn anything: {cause}.",
+                f"{type(self).__name__}.learn() took {self.num_timesteps - self._num_timesteps_at_start} environment steps "
+                f"without a single gradient step, so the policy did not learn anything: {cause}.",
                 stacklevel=2,
             )
         return self

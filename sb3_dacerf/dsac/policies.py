@@ -1,127 +1,64 @@
 import math
-from typing import Any
+from typing import Any, cast
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import BaseModel, BasePolicy
+from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN, create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_dacerf.common.policies import TwinCriticPolicy
+from sb3_dacerf.common.policies import Actor, TwinCriticPolicy
 
 #: Added to ``1 - tanh(u)²`` in the log-density of a tanh-squashed action, as in the authors' code and SB3
 TANH_EPSILON = 1e-6
 
 
-class GaussianActor(BasePolicy):
+class GaussianActor(Actor):
     """
-    Tanh-Gaussian actor of DSAC: ``a = tanh(u)``, ``u ~ N(μ(s), σ(s)²)``, with ``μ`` and ``log σ`` the two halves of
-    the output of one network (:attr:`network`, ``2 · action_dim`` outputs, as the authors' ``mlp_shared`` policy)
-    and ``log σ`` clipped to ``[log_std_min, log_std_max]``. The Gaussian is the exploration: no noise is added on top.
+    Tanh-Gaussian actor of DSAC: ``a = tanh(u)``, ``u = μ(s) + σ(s) ξ``, ``ξ ~ N(0, I)`` its noise, with ``μ`` and
+    ``log σ`` the two halves of the output of one network (:attr:`network`, as the authors' ``mlp_shared`` policy)
+    and ``log σ`` clipped to ``[log_std_min, log_std_max]``. Takes the arguments of
+    :class:`~sb3_dacerf.common.policies.Actor`, and:
 
-    :param observation_space: Observation space
-    :param action_space: Action space
-    :param net_arch: Hidden layer sizes of the network
-    :param features_extractor: Network to extract features (a CNN when using images, a nn.Flatten() layer otherwise)
-    :param features_dim: Number of features
-    :param activation_fn: Activation function
-    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
     :param log_std_min: Lower clip of ``log σ`` (-20, the authors' and SB3's)
     :param log_std_max: Upper clip of ``log σ`` (0.5, the authors'; SB3's SAC uses 2)
     """
 
-    action_space: spaces.Box
+    own_arguments = ("log_std_min", "log_std_max")
 
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        net_arch: list[int],
-        features_extractor: nn.Module,
-        features_dim: int,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        normalize_images: bool = True,
-        log_std_min: float = -20.0,
-        log_std_max: float = 0.5,
-    ):
-        super().__init__(
-            observation_space,
-            action_space,
-            features_extractor=features_extractor,
-            normalize_images=normalize_images,
-            squash_output=True,
-        )
+    def __init__(self, *args: Any, log_std_min: float = -20.0, log_std_max: float = 0.5, **kwargs: Any):
+        super().__init__(*args, **kwargs)
         if not (math.isfinite(log_std_min) and math.isfinite(log_std_max) and log_std_min < log_std_max):
             raise ValueError(
                 f"Invalid log_std_min={log_std_min!r}, log_std_max={log_std_max!r}: they must be finite numbers with "
                 "log_std_min < log_std_max (the authors' are -20 and 0.5)"
             )
-        self.net_arch = net_arch
-        self.features_dim = features_dim
-        self.activation_fn = activation_fn
-        self.action_dim = get_action_dim(self.action_space)
         self.log_std_min = float(log_std_min)
         self.log_std_max = float(log_std_max)
         self.network = nn.Sequential(*create_mlp(self.features_dim, 2 * self.action_dim, self.net_arch, self.activation_fn))
 
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update(
-            dict(
-                net_arch=self.net_arch,
-                features_dim=self.features_dim,
-                activation_fn=self.activation_fn,
-                features_extractor=self.features_extractor,
-                log_std_min=self.log_std_min,
-                log_std_max=self.log_std_max,
-            )
-        )
-        return data
-
     @property
     def noise_shape(self) -> tuple[int, ...]:
-        """``(action_dim,)``: the standard normal ``ξ`` of ``u = μ + σ ξ``."""
         return (self.action_dim,)
 
     def distribution_parameters(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """
-        :param features: State features ``(batch, features_dim)``
-        :return: ``μ`` and the clipped ``log σ`` of the Gaussian before the tanh, each ``(batch, action_dim)``
-        """
+        """``μ`` and the clipped ``log σ`` of the Gaussian before the tanh, each ``(batch, action_dim)``."""
         mean, log_std = self.network(features).chunk(2, dim=-1)
         return mean, log_std.clamp(self.log_std_min, self.log_std_max)
 
     def sample(self, features: th.Tensor, noise: th.Tensor | None = None) -> th.Tensor:
-        """
-        :param features: State features ``(batch, features_dim)``
-        :param noise: ``ξ`` ``(batch, action_dim)`` (or a batch of 1); ``None`` for the deterministic ``tanh(μ)``
-        :return: ``tanh(μ + σ ξ)`` in [-1, 1], differentiable with respect to the network
-        """
+        """``tanh(μ + σ ξ)``, ``ξ`` the ``noise`` ``(batch or 1, action_dim)``; ``None``: ``tanh(μ)``."""
         mean, log_std = self.distribution_parameters(features)
         if noise is None:
             return th.tanh(mean)
         return th.tanh(mean + log_std.exp() * noise)
 
-    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        features = self.extract_features(obs, self.features_extractor)
-        if deterministic:
-            return self.sample(features)
-        return self.sample(features, th.randn((features.shape[0], self.action_dim), device=features.device, dtype=features.dtype))
-
-    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        return self(observation, deterministic)
-
     def sample_with_log_prob(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """
-        A reparameterised sample and its log-density.
-
-        :param features: State features ``(batch, features_dim)``
-        :return: Actions ``a = tanh(u)`` in [-1, 1] ``(batch, action_dim)`` and ``log π(a|s) = log N(u; μ, σ²) -
-            Σ log(1 - tanh(u)² + 1e-6)`` ``(batch,)``, both differentiable with respect to the network
-        """
+        """A reparameterised sample ``a = tanh(u)`` ``(batch, action_dim)`` and its log-density
+        ``log π(a|s) = log N(u; μ, σ²) - Σ log(1 - tanh(u)² + 1e-6)`` ``(batch,)``."""
         mean, log_std = self.distribution_parameters(features)
         std = log_std.exp()
         gaussian = mean + std * th.randn_like(mean)
@@ -131,23 +68,16 @@ class GaussianActor(BasePolicy):
         return actions, log_prob
 
     def action_log_prob(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
-        """
-        SB3's name (``sac.policies.Actor.action_log_prob``) of :meth:`sample_with_log_prob` from observations.
-
-        :param obs: Observations
-        :return: Actions in [-1, 1] ``(batch, action_dim)`` and their log-density ``(batch,)``
-        """
+        """:meth:`sample_with_log_prob` from observations (SB3's ``sac.policies.Actor.action_log_prob``)."""
         return self.sample_with_log_prob(self.extract_features(obs, self.features_extractor))
 
 
 class GaussianCritic(BaseModel):
     """
     Twin distributional critics of DSAC: each network ``qf<j>`` outputs the mean ``Q(s, a)`` and the standard
-    deviation ``σ(s, a) = softplus(·)`` of a Gaussian return distribution (the authors' ``ActionValueDistri``).
-
-    Called like SB3's ``ContinuousCritic`` it returns the means only, one ``(batch, 1)`` tensor per network, so that
-    code written for a Q-function (``q1_forward``) reads the expected values; :meth:`distributions` returns the means
-    and the standard deviations. Same arguments as SB3's ``ContinuousCritic``, and:
+    deviation ``σ(s, a) = softplus(·)`` of a Gaussian return (the authors' ``ActionValueDistri``). Called like SB3's
+    ``ContinuousCritic`` it returns the means; :meth:`distributions` returns the means and the standard deviations.
+    Same arguments as SB3's ``ContinuousCritic``, and:
 
     :param layer_norm: ``LayerNorm`` after every hidden linear layer (before the activation)
     """
@@ -183,37 +113,22 @@ class GaussianCritic(BaseModel):
         self.q_networks = nn.ModuleList(networks)
 
     def distributions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[tuple[th.Tensor, th.Tensor], ...]:
-        """
-        :param obs: Observations
-        :param actions: Actions in [-1, 1]
-        :return: One ``(mean, std)`` pair per network, each ``(batch, 1)``; ``std = softplus(·) > 0``
-        """
+        """One ``(mean, std)`` pair per network, each ``(batch, 1)``, at observations and actions in [-1, 1]."""
         with th.set_grad_enabled(not self.share_features_extractor):
             features = self.extract_features(obs, self.features_extractor)
         qvalue_input = th.cat([features, actions], dim=1)
-        outputs = []
-        for q_net in self.q_networks:
-            mean, raw_std = q_net(qvalue_input).chunk(2, dim=-1)
-            outputs.append((mean, F.softplus(raw_std)))
-        return tuple(outputs)
+        outputs = [q_net(qvalue_input).chunk(2, dim=-1) for q_net in self.q_networks]
+        return tuple((mean, F.softplus(raw_std)) for mean, raw_std in outputs)
 
     def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
         return tuple(mean for mean, _ in self.distributions(obs, actions))
 
-    def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
-        with th.no_grad():
-            features = self.extract_features(obs, self.features_extractor)
-        return self.q_networks[0](th.cat([features, actions], dim=1))[:, :1]
-
 
 class DSACPolicy(TwinCriticPolicy):
     """
-    Policy class (tanh-Gaussian actor, twin Gaussian critics, and target networks of both) for DSAC.
-
-    Takes the arguments of :class:`sb3_dacerf.common.policies.TwinCriticPolicy` (``net_arch``, ``activation_fn``,
-    ``features_extractor_class``, ``optimizer_class``, ``n_critics``, ``share_features_extractor``,
-    ``critic``: ``"mlp"`` or ``"layer_norm"``, ...), with the authors' networks by default (``net_arch=[256, 256, 256]``,
-    ``activation_fn=nn.GELU``), and:
+    Policy class (tanh-Gaussian actor, twin Gaussian critics, and target networks of both) for DSAC. Takes the
+    arguments of :class:`~sb3_dacerf.common.policies.TwinCriticPolicy` (``critic``: ``"mlp"`` or ``"layer_norm"``),
+    with the authors' networks by default (``net_arch=[256, 256, 256]``, ``activation_fn=nn.GELU``), and:
 
     :param log_std_min: Lower clip of the actor's ``log σ``
     :param log_std_max: Upper clip of the actor's ``log σ``
@@ -225,14 +140,12 @@ class DSACPolicy(TwinCriticPolicy):
     critic: GaussianCritic
     critic_target: GaussianCritic
 
+    default_net_arch = (256, 256, 256)
+    default_activation_fn = nn.GELU
+
     def __init__(
         self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        *,
-        net_arch: list[int] | dict[str, list[int]] | None = None,
-        activation_fn: type[nn.Module] = nn.GELU,
+        *args: Any,
         log_std_min: float = -20.0,
         log_std_max: float = 0.5,
         n_critics: int = 2,
@@ -250,11 +163,7 @@ class DSACPolicy(TwinCriticPolicy):
                 f"n_critics={n_critics!r} must be 2"
             )
         super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
-            net_arch=[256, 256, 256] if net_arch is None else net_arch,
-            activation_fn=activation_fn,
+            *args,
             n_critics=n_critics,
             critic=critic,
             actor_kwargs=dict(log_std_min=log_std_min, log_std_max=log_std_max),
@@ -264,9 +173,7 @@ class DSACPolicy(TwinCriticPolicy):
     def _build(self, lr_schedule: Schedule) -> None:
         super()._build(lr_schedule)
         # Target policy network of DSAC-T: a' ~ π̄(·|s') in the critic target
-        actor_target = self.make_actor(features_extractor=None)
-        assert isinstance(actor_target, GaussianActor)  # actor_class
-        self.actor_target = actor_target
+        self.actor_target = cast(GaussianActor, self.make_actor(features_extractor=None))
         self.actor_target.load_state_dict(self.actor.state_dict())
         self.actor_target.set_training_mode(False)
 
@@ -274,24 +181,17 @@ class DSACPolicy(TwinCriticPolicy):
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return GaussianCritic(**critic_kwargs, layer_norm=self.critic_kind == "layer_norm").to(self.device)
 
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update({key: self.actor_kwargs[key] for key in ("log_std_min", "log_std_max")})
-        return data
-
 
 MlpPolicy = DSACPolicy
 
 
 class CnnPolicy(DSACPolicy):
-    """DSAC policy for image observations: :class:`DSACPolicy` with ``features_extractor_class=NatureCNN`` by default."""
+    """:class:`DSACPolicy` with ``NatureCNN`` features by default (image observations)."""
 
-    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN, **kwargs: Any):
-        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+    default_features_extractor_class = NatureCNN
 
 
 class MultiInputPolicy(DSACPolicy):
-    """DSAC policy for Dict observations: :class:`DSACPolicy` with ``features_extractor_class=CombinedExtractor``."""
+    """:class:`DSACPolicy` with ``CombinedExtractor`` features by default (Dict observations)."""
 
-    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any):
-        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+    default_features_extractor_class = CombinedExtractor
