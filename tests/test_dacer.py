@@ -178,10 +178,10 @@ def test_noise_holds_the_start_and_the_posterior_noise_of_each_reverse_step(fast
     th.manual_seed(1)
     noise = actor.draw_noise(features)
     assert noise.shape == (8, n_diffusion_steps, 1)
-    # The draws of DACER's sampler, seed for seed: x_T's, then one per step (the last step, t = 0, uses none)
+    after = th.randn(1)
+    # x_T's, then the posterior noise of the steps t = T-1 .. 1, in one draw: no random number is thrown away
     th.manual_seed(1)
-    start, steps = th.randn((8, 1)), th.randn((n_diffusion_steps, 8, 1))
-    assert th.equal(noise[:, 0], start) and th.equal(noise[:, 1:], steps[1:].transpose(0, 1))
+    assert th.equal(noise, th.randn((8, n_diffusion_steps, 1))) and th.equal(th.randn(1), after)
     # x_T = noise[:, 0]: with one step and no network output, the action is x̂_0 = x_T / sqrt(ᾱ_0)
     if n_diffusion_steps == 1:
         with th.no_grad():

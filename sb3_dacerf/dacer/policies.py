@@ -77,14 +77,6 @@ class DiffusionActor(GenerativeActor):
         """``(n_diffusion_steps, action_dim)``: the start ``x_T`` and the posterior noise of each reverse step."""
         return (self.n_diffusion_steps, self.action_dim)
 
-    def draw_noise(self, features: th.Tensor) -> th.Tensor:
-        """Standard normal noise ``(batch, n_diffusion_steps, action_dim)`` for :meth:`sample`."""
-        shape = (features.shape[0], self.action_dim)
-        start = th.randn(shape, device=features.device, dtype=features.dtype)
-        # One draw per reverse step as in the official sampler, although the last step (t = 0) adds no noise
-        steps = th.randn((self.n_diffusion_steps, *shape), device=features.device, dtype=features.dtype)
-        return th.cat([start[:, None], steps[1:].transpose(0, 1)], dim=1)
-
     def time_embeddings(self) -> th.Tensor:
         """The embedding of each diffusion step ``t = 0 .. T-1``, ``(n_diffusion_steps, time_embedding_dim)``."""
         return self.time_net(self.time_sinusoids)
