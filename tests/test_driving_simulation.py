@@ -5,19 +5,20 @@ closest lane, neighbours, conflict decisions, IDM decisions and collisions, and 
 
 import copy
 import pickle
+from unittest import mock
 
 import numpy as np
 import pytest
 
 pytest.importorskip("highway_env")
 
-from highway_env.road.lane import CircularLane, StraightLane
 from highway_env.road.regulation import RegulatedRoad
 from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
+from sb3_dacerf.envs.driving.common import simulation
 from sb3_dacerf.envs.driving.common.simulation import (
     FastIDMVehicle,
     FastRegulatedRoad,
@@ -25,10 +26,27 @@ from sb3_dacerf.envs.driving.common.simulation import (
     IndexedRoadNetwork,
     predict_constant_speed,
 )
-from sb3_dacerf.envs.driving.intersection import FastFirstComeRoad, FirstComeRoad, IntersectionEnv
+from sb3_dacerf.envs.driving.intersection import FirstComeRoad, IntersectionEnv
 from sb3_dacerf.envs.driving.multilane import MultilaneEnv
 
 SCENARIOS = [MultilaneEnv, IntersectionEnv]
+
+
+class StockFirstComeRoad(RegulatedRoad):
+    """The intersection's first-come right of way on highway-env's own ``RegulatedRoad``."""
+
+    respect_priorities = staticmethod(FirstComeRoad.respect_priorities)
+
+
+def stock_road(road, road_class=FastRoad):
+    if road_class is FirstComeRoad:
+        return StockFirstComeRoad(road.network, np_random=road.np_random, record_history=road.record_history)
+    return road  # highway-env's Road or RegulatedRoad
+
+
+def highway_env_classes():
+    """Envs made and stepped inside run on highway-env's own road, lane network and IDM vehicle classes."""
+    return mock.patch.multiple(simulation, fast_road=stock_road, fast_vehicle=lambda vehicle: vehicle)
 
 
 def stepped(env_class, steps=40, seed=0, **config):
@@ -69,24 +87,27 @@ def assert_same_trace(a, b):
 
 
 @pytest.mark.parametrize("env_class", SCENARIOS)
-def test_fast_simulation_is_the_default_and_false_builds_highway_env_classes(env_class):
-    fast, stock = env_class(), env_class(config={"fast_simulation": False})
-    fast.reset(seed=0)
-    stock.reset(seed=0)
-    assert type(fast.road.network) is IndexedRoadNetwork and type(stock.road.network) is RoadNetwork
-    traffic = [v for v in fast.road.vehicles if v is not fast.vehicle]
-    assert traffic and all(type(v) is FastIDMVehicle for v in traffic)
-    assert all(type(v) is IDMVehicle for v in stock.road.vehicles if v is not stock.vehicle)
-    if env_class is IntersectionEnv:
-        assert type(fast.road) is FastFirstComeRoad and type(stock.road) is FirstComeRoad
-        priority = env_class(config={"right_of_way": "priority"})
-        priority.reset(seed=0)
-        assert type(priority.road) is FastRegulatedRoad
-        priority_stock = env_class(config={"right_of_way": "priority", "fast_simulation": False})
-        priority_stock.reset(seed=0)
-        assert type(priority_stock.road) is RegulatedRoad
-    else:
-        assert type(fast.road) is FastRoad and type(stock.road) is Road
+def test_the_envs_run_on_the_fast_classes(env_class):
+    for config, road_class in (
+        [({}, FastRoad)]
+        if env_class is MultilaneEnv
+        else [
+            ({}, FirstComeRoad),
+            ({"right_of_way": "priority"}, FastRegulatedRoad),
+        ]
+    ):
+        fast = env_class(config=config)
+        fast.reset(seed=0)
+        with highway_env_classes():
+            stock = env_class(config=config)
+            stock.reset(seed=0)
+        assert type(fast.road) is road_class and type(fast.road.network) is IndexedRoadNetwork
+        traffic = [v for v in fast.road.vehicles if v is not fast.vehicle]
+        assert traffic and all(type(v) is FastIDMVehicle for v in traffic)
+        # the reference of the comparisons below: highway-env's own classes
+        expected = {FastRoad: Road, FirstComeRoad: StockFirstComeRoad, FastRegulatedRoad: RegulatedRoad}[road_class]
+        assert type(stock.road) is expected and type(stock.road.network) is RoadNetwork
+        assert all(type(v) is IDMVehicle for v in stock.road.vehicles if v is not stock.vehicle)
 
 
 @pytest.mark.parametrize(
@@ -101,9 +122,9 @@ def test_fast_simulation_is_the_default_and_false_builds_highway_env_classes(env
 def test_same_episodes_as_highway_env_classes(env_class, config, steps):
     """Step for step the same observations, rewards, flags and vehicle counts, across resets."""
     for density in ("normal", "dense"):
-        fast = env_class(density=density, config={**config, "duration": 8, "fast_simulation": True})
-        stock = env_class(density=density, config={**config, "duration": 8, "fast_simulation": False})
-        fast_trace, stock_trace = run_episodes(fast, steps, seed=3), run_episodes(stock, steps, seed=3)
+        fast_trace = run_episodes(env_class(density=density, config={**config, "duration": 8}), steps, seed=3)
+        with highway_env_classes():
+            stock_trace = run_episodes(env_class(density=density, config={**config, "duration": 8}), steps, seed=3)
         assert_same_trace(fast_trace, stock_trace)
         # the traces cover episode ends, not only running traffic
         assert any(isinstance(step, tuple) and (step[2] or step[3]) for step in fast_trace)
@@ -136,21 +157,6 @@ def test_closest_lane_of_a_position_that_is_not_finite_is_highway_env_s():
             assert network.get_closest_lane_index(position, heading) == RoadNetwork.get_closest_lane_index(
                 network, position, heading
             )
-
-
-def test_remembered_lane_coordinates_are_the_lane_s():
-    network = stepped(IntersectionEnv, steps=0).road.network
-    rng = np.random.default_rng(1)
-    for lane in network.lanes_list():
-        base = type(lane).__mro__[2]  # the highway-env lane class after the remembering mixin
-        assert base in (StraightLane, CircularLane)
-        for position in [*rng.uniform(-60, 60, size=(20, 2)), np.array([0.0, -0.0]), np.array([-0.0, 0.0])]:
-            for _ in range(2):  # computed, then remembered
-                assert lane.local_coordinates(position) == base.local_coordinates(lane, position)
-            assert lane.local_coordinates(list(position)) == base.local_coordinates(lane, np.array(position))
-        # positions equal but for the sign of a zero are remembered apart
-        signs = [np.copysign(1.0, c) for c in lane.local_coordinates(np.array([0.0, -0.0]))]
-        assert signs == [np.copysign(1.0, c) for c in base.local_coordinates(lane, np.array([0.0, -0.0]))]
 
 
 @pytest.mark.parametrize("env_class", SCENARIOS)
@@ -272,8 +278,3 @@ def test_fast_env_pickles_and_steps_on_the_same(env_class):
         assert a[1:4] == b[1:4]
         if a[2] or a[3]:
             break
-
-
-def test_fast_simulation_must_be_a_bool():
-    with pytest.raises(ValueError, match=r"config\['fast_simulation'\] must be True or False, got 1"):
-        MultilaneEnv(config={"fast_simulation": 1})

@@ -45,16 +45,10 @@ from highway_env.road.regulation import RegulatedRoad
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
+from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath, simulation
 from sb3_dacerf.envs.driving.common.config import Rule, boolean, choice, interval, number
 from sb3_dacerf.envs.driving.common.reference import nominal_steering
-from sb3_dacerf.envs.driving.common.simulation import (
-    FastRegulatedRoad,
-    FastRoad,
-    IndexedRoadNetwork,
-    SharedPredictions,
-    fast_vehicle_class,
-)
+from sb3_dacerf.envs.driving.common.simulation import FastRegulatedRoad
 
 ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
 """Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
@@ -169,7 +163,7 @@ def _speed_ranges_rule(value: object) -> str | None:
     return f"a dict of route -> [low, high] target speeds [m/s] within [0, 40], routes among {list(ROUTES)}"
 
 
-class FirstComeRoad(RegulatedRoad):
+class FirstComeRoad(FastRegulatedRoad):
     """
     highway-env's regulated junction road, except that a conflict between the ego and a traffic vehicle goes to
     whichever is ahead: the one behind yields (in practice the traffic vehicle, which brakes to a stop; the ego is
@@ -181,10 +175,6 @@ class FirstComeRoad(RegulatedRoad):
         if isinstance(v1, ControlledVehicle) and isinstance(v2, ControlledVehicle):  # two traffic vehicles
             return RegulatedRoad.respect_priorities(v1, v2)
         return v1 if v1.front_distance_to(v2) > v2.front_distance_to(v1) else v2
-
-
-class FastFirstComeRoad(SharedPredictions, FirstComeRoad, FastRoad):
-    """:class:`FirstComeRoad` on the faster classes of :mod:`.simulation`, with the same answers."""
 
 
 class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
@@ -267,26 +257,10 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             raise ValueError(f"reference_speed_ranges lacks the route(s) {sorted(missing)} (overrides replace the whole dict)")
 
     def _make_road(self) -> None:
-        """
-        highway-env's junction, on a :class:`FirstComeRoad` if ``right_of_way`` is ``"first_come"``, and on the
-        faster classes of :mod:`.simulation` (:class:`FastFirstComeRoad`, ``FastRegulatedRoad``) if
-        ``fast_simulation``.
-        """
+        """highway-env's junction, on a :class:`FirstComeRoad` (``right_of_way="first_come"``) or a ``FastRegulatedRoad``."""
         super()._make_road()
-        first_come, fast = self.config["right_of_way"] == "first_come", self.config["fast_simulation"]
-        if first_come or fast:
-            road = self.road
-            road_class = {
-                (True, True): FastFirstComeRoad,
-                (True, False): FirstComeRoad,
-                (False, True): FastRegulatedRoad,
-            }[first_come, fast]
-            self.road = road_class(
-                network=IndexedRoadNetwork.from_network(road.network) if fast else road.network,
-                np_random=road.np_random,
-                record_history=road.record_history,
-                neighbour_vehicles_connected_lanes=road.neighbour_vehicles_connected_lanes,
-            )
+        first_come = self.config["right_of_way"] == "first_come"
+        self.road = simulation.fast_road(self.road, FirstComeRoad if first_come else FastRegulatedRoad)
 
     def _make_vehicles(self, n_vehicles: int = 10) -> None:
         """Spawn and warm up the traffic as highway-env does, then create the ego, its route and reference."""
@@ -402,10 +376,8 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     def _spawn_vehicle(self, longitudinal: float = 0, *args, **kwargs):
         """highway-env's spawner, with its IDM settings for junctions set per vehicle instead of on the class."""
         vehicle = super()._spawn_vehicle(longitudinal, *args, **kwargs)
-        if vehicle is not None and self.config["fast_simulation"]:
-            # The same vehicle, deciding through the faster methods of .simulation (no state of its own to add)
-            vehicle.__class__ = fast_vehicle_class(type(vehicle))
         if vehicle is not None:
+            simulation.fast_vehicle(vehicle)
             # highway-env's intersection-v0 sets these on the IDMVehicle class, which leaks into every other env.
             vehicle.DISTANCE_WANTED, vehicle.COMFORT_ACC_MAX, vehicle.COMFORT_ACC_MIN = 7.0, 6.0, -3.0
         return vehicle

@@ -26,9 +26,8 @@ from highway_env.road.lane import AbstractLane
 from highway_env.road.road import LaneIndex, Road
 from highway_env.vehicle.kinematics import Vehicle
 
-from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
+from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath, simulation
 from sb3_dacerf.envs.driving.common.config import Rule, choice, interval, number
-from sb3_dacerf.envs.driving.common.simulation import FastRoad, IndexedRoadNetwork, fast_vehicle_class
 
 REFERENCE_LANES = ("random", "current", "left", "right")
 
@@ -87,16 +86,9 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
             raise ValueError(f"lanes_count must be >= 1, got {self.config['lanes_count']}")
 
     def _create_road(self) -> None:
-        """highway-env's straight multi-lane road, on the faster classes of :mod:`.simulation` if ``fast_simulation``."""
+        """highway-env's straight multi-lane road, on the faster classes of :mod:`.simulation`."""
         super()._create_road()
-        if self.config["fast_simulation"]:
-            road = self.road
-            self.road = FastRoad(
-                network=IndexedRoadNetwork.from_network(road.network),
-                np_random=road.np_random,
-                record_history=road.record_history,
-                neighbour_vehicles_connected_lanes=road.neighbour_vehicles_connected_lanes,
-            )
+        self.road = simulation.fast_road(self.road)
 
     def _create_vehicles(self) -> None:
         """Create the ego near its reference speed, its reference lane, and the traffic around it."""
@@ -138,8 +130,6 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         """
         config, rng = self.config, self.np_random
         vehicle_type = utils.class_from_path(config["other_vehicles_type"])
-        if config["fast_simulation"]:
-            vehicle_type = fast_vehicle_class(vehicle_type)
         ego_x, ego_lane = self.vehicle.position[0], self.vehicle.lane_index
         abscissas: dict[LaneIndex, list[float]] = {}  # of the vehicles on each lane, gathered once for the 50 draws
         for v in self.road.vehicles:
@@ -153,7 +143,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
                 continue
             if any(abs(v_x - x) < self.TRAFFIC_GAP for v_x in abscissas.get(lane_index, ())):
                 continue
-            vehicle = vehicle_type.make_on_lane(self.road, lane_index, x, speed=rng.uniform(*config["traffic_speed_range"]))
+            speed = rng.uniform(*config["traffic_speed_range"])
+            vehicle = simulation.fast_vehicle(vehicle_type.make_on_lane(self.road, lane_index, x, speed=speed))
             vehicle.randomize_behavior()
             vehicle.check_collisions = False  # only the ego's collisions matter, as in highway-fast-v0
             self.road.vehicles.append(vehicle)

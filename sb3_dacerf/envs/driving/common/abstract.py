@@ -171,9 +171,6 @@ class PaperDrivingMixin(_HighwayEnv):
                 # ends the episode with the severe-event penalty; 0: never
                 "stall_timeout": 0.0,
                 "stall_distance": 2.0,
-                # True: highway-env's road, lane network and IDM traffic through the faster classes of .simulation,
-                # which give the same traffic and episodes; False: highway-env's own classes (slower)
-                "fast_simulation": True,
             }
         )
         return config

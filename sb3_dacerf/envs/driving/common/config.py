@@ -129,7 +129,6 @@ COMMON_RULES: dict[str, Rule] = {
     "manual_control": boolean(),
     "real_time_rendering": boolean(),
     "neighbour_vehicles_connected_lanes": boolean(),
-    "fast_simulation": boolean(),
     # the paper's task layer
     "duration": number(0, low_open=True),
     "perception_distance": number(0, low_open=True),
