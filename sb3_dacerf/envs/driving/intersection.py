@@ -45,9 +45,10 @@ from highway_env.road.regulation import RegulatedRoad
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath, simulation
+from sb3_dacerf.envs.driving.common import simulation
+from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.config import Rule, boolean, choice, interval, number
-from sb3_dacerf.envs.driving.common.reference import nominal_steering
+from sb3_dacerf.envs.driving.common.reference import ReferencePath, nominal_steering
 from sb3_dacerf.envs.driving.common.simulation import FastRegulatedRoad
 
 ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}

@@ -26,8 +26,10 @@ from highway_env.road.lane import AbstractLane
 from highway_env.road.road import LaneIndex, Road
 from highway_env.vehicle.kinematics import Vehicle
 
-from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath, simulation
+from sb3_dacerf.envs.driving.common import simulation
+from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.config import Rule, choice, interval, number
+from sb3_dacerf.envs.driving.common.reference import ReferencePath
 
 REFERENCE_LANES = ("random", "current", "left", "right")
 
