@@ -1,18 +1,14 @@
 """
 Multi-lane highway of the paper (``DACERF-Multilane-v0``), on highway-env's ``HighwayEnv``.
 
-High-speed continuous driving on a straight road of ``lanes_count`` (3) lanes with IDM / MOBIL traffic
-that changes lanes and cuts in. The reference path is the centre line of the ego's current lane or of
-an adjacent one (a lane change to merge into), with a target speed drawn from ``reference_speed_range``;
-the ego starts at about that speed (± 0.5 m/s) with small random lateral and heading offsets. Only the
-stretch ``traffic_window`` around the ego (default 80 m behind to 120 m ahead) is simulated: vehicles leaving
-it are removed and new ones enter at the other end, so the vehicle count stays at ``vehicles_count``
-(``density``: sparse 6, normal 12, dense 20) and the simulation cost does not grow with the road length.
-As in highway-env's ``highway-fast-v0``, only the ego's collisions are checked.
-
-An episode is truncated after ``duration`` (30 s, 300 steps) and ends early on a collision or when the
-ego's centre leaves the carriageway; ``info["is_success"]`` is true when it reaches the time limit
-safely. Observation scaling: positions / 50 m, speeds / 30 m/s (see ``sb3_dacerf.envs.driving.common``).
+A straight road of ``lanes_count`` (3) lanes with IDM / MOBIL traffic that changes lanes and cuts in (only the ego's
+collisions are checked, as in ``highway-fast-v0``). The reference is the centre line of the ego's lane or of an
+adjacent one (a lane change to merge into), its target speed drawn from ``reference_speed_range``; the ego starts at
+about that speed with small lateral and heading offsets. Only the stretch ``traffic_window`` around the ego (80 m
+behind to 120 m ahead) is simulated: vehicles leaving it re-enter at the other end, so that ``vehicles_count`` stays
+(``density``: sparse 6, normal 12, dense 20). The episode ends on a collision or when the ego's centre leaves the
+carriageway, and is truncated after ``duration`` (30 s), a success if reached safely. Observation scaling:
+positions / 50 m, speeds / 30 m/s.
 """
 
 from __future__ import annotations
@@ -35,14 +31,7 @@ REFERENCE_LANES = ("random", "current", "left", "right")
 
 
 class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
-    """
-    Multi-lane highway with lane changes and merging into traffic; see the module docstring.
-
-    :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
-    :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``, or ``"random"``, a list or a
-        dict of weights to draw one per episode (:mod:`sb3_dacerf.envs.driving.density`)
-    """
+    """The multi-lane highway (see the module docstring); takes :class:`PaperDrivingMixin`'s arguments."""
 
     road: Road
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
@@ -80,12 +69,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
 
     def configure(self, config: dict | None) -> None:
         super().configure(config)
-        if self.config["reference_lane"] not in REFERENCE_LANES:
-            raise ValueError(f"Unknown reference_lane {self.config['reference_lane']!r}: expected one of {REFERENCE_LANES}")
         if self.config["lanes_count"] < 2 and self.config["reference_lane"] in ("left", "right"):
             raise ValueError("reference_lane 'left' / 'right' needs lanes_count >= 2")
-        if self.config["lanes_count"] < 1:
-            raise ValueError(f"lanes_count must be >= 1, got {self.config['lanes_count']}")
 
     def _create_road(self) -> None:
         """highway-env's straight multi-lane road, on the faster classes of :mod:`.simulation`."""
@@ -123,13 +108,7 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
             self._place_traffic_vehicle(x0 + behind, x0 + ahead)
 
     def _place_traffic_vehicle(self, low: float, high: float) -> bool:
-        """
-        Put one IDM vehicle at a random free spot of a random lane between two abscissas.
-
-        :param low: lowest abscissa [m]
-        :param high: highest abscissa [m]
-        :return: whether a free spot was found
-        """
+        """:return: whether a traffic vehicle was put at a random free spot of a random lane between two abscissas [m]"""
         config, rng = self.config, self.np_random
         vehicle_type = utils.class_from_path(config["other_vehicles_type"])
         ego_x, ego_lane = self.vehicle.position[0], self.vehicle.lane_index
@@ -139,11 +118,11 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         for _ in range(50):
             lane_index: LaneIndex = ("0", "1", int(rng.integers(config["lanes_count"])))
             x = rng.uniform(low, high)
-            if lane_index == ego_lane and self.EGO_CLEARANCE[0] < x - ego_x < self.EGO_CLEARANCE[1]:
-                continue
-            if abs(x - ego_x) < self.TRAFFIC_GAP:  # nobody alongside the ego either
-                continue
-            if any(abs(v_x - x) < self.TRAFFIC_GAP for v_x in abscissas.get(lane_index, ())):
+            if (
+                (lane_index == ego_lane and self.EGO_CLEARANCE[0] < x - ego_x < self.EGO_CLEARANCE[1])
+                or abs(x - ego_x) < self.TRAFFIC_GAP  # nobody alongside the ego either
+                or any(abs(v_x - x) < self.TRAFFIC_GAP for v_x in abscissas.get(lane_index, ()))
+            ):
                 continue
             speed = rng.uniform(*config["traffic_speed_range"])
             vehicle = simulation.fast_vehicle(vehicle_type.make_on_lane(self.road, lane_index, x, speed=speed))
