@@ -2,7 +2,6 @@
 
 import json
 import os
-import pickle
 import subprocess
 import sys
 import warnings
@@ -303,20 +302,6 @@ def test_exploring_start_on_the_reference_path():
         gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 1.5})
 
 
-def test_env_pickled_by_an_earlier_version_steps_on():
-    """A training checkpoint's env from before config keys were added: they take their defaults."""
-    env = gym.make("DACERF-Intersection-v0")
-    env.reset(seed=0)
-    env.step(np.zeros(2, dtype=np.float32))
-    unwrapped = env.unwrapped
-    for key in ("dynamic_penalty_discount", "stall_timeout", "stall_distance", "reference_start_probability"):
-        del unwrapped.config[key]
-    del unwrapped._progress
-    restored = pickle.loads(pickle.dumps(env))
-    _, reward, *_ = restored.step(np.zeros(2, dtype=np.float32))
-    assert np.isfinite(reward) and restored.unwrapped.config["stall_timeout"] == 0.0
-
-
 def test_highway_success_at_time_limit():
     env, *_ = empty_highway(duration=1)
     for _ in range(10):
@@ -607,15 +592,6 @@ def test_drawn_densities_refuse_config_keys_they_set():
     env = gym.make("DACERF-Multilane-v0", density="sparse", config={"vehicles_count": 3})
     env.reset(seed=0)
     assert len(env.unwrapped.road.vehicles) - 1 == 3
-
-
-def test_env_pickled_before_density_distributions_unpickles():
-    env = gym.make("DACERF-Multilane-v0", density="dense", config={"duration": 1}).unwrapped
-    state = env.__getstate__() if hasattr(env, "__getstate__") else dict(env.__dict__)
-    state = {key: value for key, value in state.items() if key != "density_weights"}
-    restored = type(env).__new__(type(env))
-    restored.__setstate__(state)
-    assert restored.density == "dense" and restored.density_weights == {"dense": 1.0}
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

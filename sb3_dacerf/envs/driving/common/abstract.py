@@ -66,14 +66,13 @@ class PaperDrivingMixin(_HighwayEnv):
     """Config keys that shape training episodes only (e.g. exploring starts): evaluations leave them out."""
     reference: ReferencePath
     reference_speed: float
+    scene: Scene
+    density: str  # of the current episode
+    density_weights: dict[str, float]  # the probability of each density an episode can have
     _progress: deque[float]
     observation_space: spaces.Space | None
     action_space: spaces.Space | None
     viewer: EnvViewer | None
-    density: str
-    """The traffic density of the current episode."""
-    density_weights: dict[str, float]
-    """The probability of each density an episode can have."""
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None, density: DensitySpec = "normal") -> None:
         self.density_weights = density_weights(density)
@@ -83,10 +82,6 @@ class PaperDrivingMixin(_HighwayEnv):
             raise TypeError(f"config must be a dict of overrides, got {type(config).__name__}")
         self.density = next(iter(self.density_weights))
         self._check_density_keys(config or {})
-        self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
-        self.scene: Scene | None = None
-        self._episode_over = False  # terminated or truncated returned since the last reset
-        self._warned_step_after_end = False
         # With several densities, each reset sets the drawn density's keys.
         density_config = self.DENSITY_CONFIGS[self.density] if len(self.density_weights) == 1 else {}
         super().__init__({**density_config, **(config or {})}, render_mode=render_mode)
@@ -143,14 +138,6 @@ class PaperDrivingMixin(_HighwayEnv):
         )
         return config
 
-    def __setstate__(self, state: dict) -> None:
-        """Unpickle an env, also one pickled before config keys were added (they take their defaults)."""
-        self.__dict__.update({**state, "config": {**self.default_config(), **state["config"]}})
-        if "density_weights" not in state:
-            self.density_weights = {self.density: 1.0}
-        if "_progress" not in state and self.scene is not None:
-            self._start_stall_history()
-
     def configure(self, config: dict | None) -> None:
         unknown = sorted(set(config or {}) - set(self.default_config()))
         if unknown:
@@ -179,15 +166,7 @@ class PaperDrivingMixin(_HighwayEnv):
         return {**COMMON_RULES, **cls.CONFIG_RULES}
 
     def define_spaces(self) -> None:
-        config = self.config
-        self.observation_type = EgoFrameObservation(self)
-        self.action_type = IncrementalAction(
-            self,
-            acceleration_increment_range=config["acceleration_increment_range"],
-            steering_increment_range=config["steering_increment_range"],
-            acceleration_range=config["acceleration_range"],
-            steering_range=config["steering_range"],
-        )
+        self.observation_type, self.action_type = EgoFrameObservation(self), IncrementalAction(self)
         # The steering command starts at the ego's (non-zero for an exploring start inside a turn).
         if self.controlled_vehicles:
             self.action_type.command[1] = self.controlled_vehicles[0].action["steering"]
@@ -199,7 +178,7 @@ class PaperDrivingMixin(_HighwayEnv):
 
     def _reset(self) -> None:
         self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
-        self._episode_over = self._warned_step_after_end = False
+        self._episode_over = self._warned_step_after_end = False  # terminated or truncated returned, and warned of
         if len(self.density_weights) > 1:
             # From the env's generator, which reset(seed=...) seeds: a seed gives the same density every time.
             names, probabilities = list(self.density_weights), list(self.density_weights.values())
@@ -208,12 +187,9 @@ class PaperDrivingMixin(_HighwayEnv):
         super()._reset()
         self.vehicle.MIN_SPEED = 0.0  # the ego stops instead of reversing
         self.scene = observe_scene(self)
-        self._start_stall_history()
-
-    def _start_stall_history(self) -> None:
-        """The ego's progress along its reference over the last ``stall_timeout`` seconds, from the current scene."""
+        # the ego's progress along its reference over the last stall_timeout seconds
         window = round(self.config["stall_timeout"] * self.config["policy_frequency"])
-        self._progress = deque([self._current_scene().reference_progress], maxlen=window + 1 if window else None)
+        self._progress = deque([self.scene.reference_progress], maxlen=window + 1 if window else None)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """
@@ -294,15 +270,10 @@ class PaperDrivingMixin(_HighwayEnv):
     def _rewards(self) -> dict[str, float]:
         """The paper's signed reward and cost terms of the current scene (see :mod:`.reward`)."""
         applied = self.action_type.applied_increment
-        return reward_terms(self.config, self._current_scene(), self.vehicle, applied, self._severe_penalty(), self._stalled())
+        return reward_terms(self.config, self.scene, self.vehicle, applied, self._severe_penalty(), self._stalled())
 
     def _reward(self, action: np.ndarray) -> float:
         return float(sum(self._rewards().values()))
-
-    def _current_scene(self) -> Scene:
-        if self.scene is None:
-            raise ResetNeeded("The env has no scene before reset(): call env.reset(seed=...) first")
-        return self.scene
 
     def _stalled(self) -> bool:
         """Less than ``stall_distance`` of progress in the last ``stall_timeout`` s, without a collision or leaving the road."""
@@ -311,14 +282,14 @@ class PaperDrivingMixin(_HighwayEnv):
             progress.maxlen is not None
             and len(progress) == progress.maxlen
             and progress[-1] - progress[0] < self.config["stall_distance"]
-            and not (self.vehicle.crashed or self._current_scene().road_clearance < 0)
+            and not (self.vehicle.crashed or self.scene.road_clearance < 0)
         )
 
     def _is_terminated(self) -> bool:
-        return bool(self.vehicle.crashed or self._current_scene().road_clearance < 0 or self._stalled())
+        return bool(self.vehicle.crashed or self.scene.road_clearance < 0 or self._stalled())
 
     def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
-        scene = self._current_scene()
+        scene = self.scene
         crashed, off_road, stalled = bool(self.vehicle.crashed), bool(scene.road_clearance < 0), self._stalled()
         return {
             "speed": float(self.vehicle.speed),

@@ -17,27 +17,17 @@ from highway_env.envs.common.action import ContinuousAction
 
 class IncrementalAction(ContinuousAction):
     """
-    Continuous action ``[Δa_x, Δδ]``, integrated into the command ``[a_x, δ]`` and clipped every policy step.
-
-    :param env: the environment
-    :param acceleration_increment_range: bounds of Δa_x per policy step [m/s²]
-    :param steering_increment_range: bounds of Δδ per policy step [rad]
-    :param acceleration_range: bounds of the integrated a_x [m/s²]
-    :param steering_range: bounds of the integrated δ [rad]
+    Continuous action ``[Δa_x, Δδ]``, integrated into the command ``[a_x, δ]`` and clipped every policy step, with the
+    bounds of the env's config (``acceleration_increment_range``, ``steering_increment_range``, ``acceleration_range``,
+    ``steering_range``).
     """
 
-    def __init__(
-        self,
-        env: AbstractEnv,
-        acceleration_increment_range: tuple[float, float] = (-0.4, 0.25),
-        steering_increment_range: tuple[float, float] = (-0.025, 0.025),
-        acceleration_range: tuple[float, float] = (-0.8, 0.8),
-        steering_range: tuple[float, float] = (-0.571, 0.571),
-        **kwargs,
-    ) -> None:
-        super().__init__(env, acceleration_range=acceleration_range, steering_range=steering_range)
-        self.increment_low, self.increment_high = np.array([acceleration_increment_range, steering_increment_range]).T
-        self.command_low, self.command_high = np.array([acceleration_range, steering_range], dtype=np.float64).T
+    def __init__(self, env: AbstractEnv) -> None:
+        config = env.config
+        super().__init__(env, acceleration_range=config["acceleration_range"], steering_range=config["steering_range"])
+        increments = [config["acceleration_increment_range"], config["steering_increment_range"]]
+        self.increment_low, self.increment_high = np.array(increments).T
+        self.command_low, self.command_high = np.array([config["acceleration_range"], config["steering_range"]]).T
         self.command = np.zeros(2)  # integrated [a_x, δ]
         self.applied_increment = np.zeros(2)  # the increment applied after clipping, for the comfort terms
 
