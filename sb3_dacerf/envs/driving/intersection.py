@@ -64,15 +64,10 @@ def u_turn_points(start: np.ndarray, heading: float, turn_sign: float, step: flo
     position, psi = np.asarray(start, dtype=np.float64), heading
     for kappa, angle in pieces:
         length = angle * U_TURN_RADIUS
-        s = np.arange(0.0, length, step)
-        points.append(
-            position + np.column_stack([np.sin(psi + kappa * s) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * s)]) / kappa
-        )
-        headings.append(psi + kappa * s)
-        position = (
-            position + np.array([np.sin(psi + kappa * length) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * length)]) / kappa
-        )
-        psi = psi + kappa * length
+        along, end = psi + kappa * np.arange(0.0, length, step), psi + kappa * length
+        points.append(position + np.column_stack([np.sin(along) - np.sin(psi), np.cos(psi) - np.cos(along)]) / kappa)
+        headings.append(along)
+        position, psi = position + np.array([np.sin(end) - np.sin(psi), np.cos(psi) - np.cos(end)]) / kappa, end
     return np.concatenate([*points, [position]]), np.concatenate([*headings, [psi]])
 
 
@@ -106,16 +101,13 @@ def turn_conflicts(network, ego_exit: int, conflict_distance: float = 3.1, step:
     ego = path(0, ego_exit)
     conflicts = {}
     for entry in (1, 2, 3):
-        for exit_ in range(4):
-            if exit_ == entry:
-                continue
+        for exit_ in [arm for arm in range(4) if arm != entry]:
             other = path(entry, exit_)
             close = np.linalg.norm(ego[:, None] - other[None], axis=-1) < conflict_distance
             ego_index, other_index = np.nonzero(close)
             if len(ego_index):
-                conflicts[entry, exit_] = tuple(
-                    step * index for index in (ego_index.min(), ego_index.max(), other_index.min(), other_index.max())
-                )
+                ego_in, ego_out, traffic_in, traffic_out = ego_index.min(), ego_index.max(), other_index.min(), other_index.max()
+                conflicts[entry, exit_] = (step * ego_in, step * ego_out, step * traffic_in, step * traffic_out)
     return conflicts
 
 

@@ -1,16 +1,8 @@
 """
 Faster drop-in versions of highway-env's road, lane network and IDM vehicle, on which the driving scenarios' traffic
 runs. Every answer is highway-env's (the same closest lane, neighbours, right-of-way conflicts, IDM decisions and
-collisions, so the same episodes: ``tests/test_driving_simulation.py`` checks each piece and whole episodes against
-highway-env's classes); ``benchmarks/driving_speed.py`` measures the speed-up.
-
-- :class:`IndexedRoadNetwork`: the closest lane, measuring only the lanes whose lower bound (distance to the lane's
-  box and heading difference) does not exceed the best distance found;
-- :class:`FastRoad`: the neighbour search scans the vehicles of each lane, collected once per ``act()``; collision
-  checks that highway-env would leave at once are skipped;
-- :class:`FastRegulatedRoad`: right-of-way conflicts on predictions computed once per vehicle and enforcement, the
-  ego's rolled out without copying the road;
-- :class:`FastIDMVehicle`: the IDM decisions, clipping Python numbers instead of calling ``np.clip``.
+collisions: ``tests/test_driving_simulation.py`` checks each piece and whole episodes against highway-env's classes);
+``benchmarks/driving_speed.py`` measures the speed-up.
 """
 
 from __future__ import annotations
@@ -38,13 +30,10 @@ Bound = tuple[bool | None, float, float, float, float, float, float]
 
 def _lane_bound(lane: AbstractLane) -> Bound:
     """
-    What bounds ``lane.distance_with_heading`` from below: its position term ``|r| + max(s - L, 0) + max(-s, 0)`` is
-    at least the distance to the centre line, so to the line's box; its heading term is a straight lane's heading
-    difference, or the angle to an arc's interval of headings (beyond the arc's ends the position term grows faster
-    than the heading term shrinks, for radii >= 1 m).
-
-    :return: ``(straight, x_min, y_min, x_max, y_max, heading, half_width)``, ``straight`` ``None`` for a lane of
-        another kind (no bound)
+    ``(straight, x_min, y_min, x_max, y_max, heading, half_width)``, which bound ``lane.distance_with_heading`` from
+    below (``straight`` ``None``: no bound): its position term is at least the distance to the centre line's box, its
+    heading term a straight lane's heading difference or the angle to an arc's interval of headings (beyond the arc's
+    ends the position term grows faster than the heading term shrinks, for radii >= 1 m).
     """
     if type(lane) is StraightLane:
         (x0, y0), (x1, y1) = lane.start, lane.end
@@ -60,9 +49,9 @@ def _lane_bound(lane: AbstractLane) -> Bound:
 
 class IndexedRoadNetwork(RoadNetwork):
     """
-    highway-env's ``RoadNetwork`` with a faster ``get_closest_lane_index``: the lanes are measured nearest first (by
-    their bound over the position's 2 m grid cell), skipping those whose bound exceeds the best distance found; ties
-    go to the first lane in the network's order, as ``np.argmin`` gives them.
+    highway-env's ``RoadNetwork``; ``get_closest_lane_index`` measures the lanes nearest first (by their bound over the
+    position's grid cell), skipping those whose bound exceeds the best distance found (ties: the first lane, as
+    ``np.argmin``).
     """
 
     CELL = 2.0
@@ -73,13 +62,12 @@ class IndexedRoadNetwork(RoadNetwork):
 
     @classmethod
     def from_network(cls, network: RoadNetwork) -> IndexedRoadNetwork:
-        """:return: an indexed network of the same lanes"""
         indexed = cls()
         indexed.graph = network.graph
         return indexed
 
     def __getstate__(self) -> dict:
-        # The bounds and cells are rebuilt on demand: a pickled network (a checkpoint's env) stays small.
+        # the bounds and cells are rebuilt on demand: a pickled network stays small
         return {key: value for key, value in self.__dict__.items() if key not in ("_bounds", "_cells")}
 
     def add_lane(self, _from: str, _to: str, lane: AbstractLane) -> None:
@@ -159,10 +147,7 @@ def _lateral_filter(lane: AbstractLane) -> Any:
 
 
 def _may_touch(vehicle: Any, other: Any, dt: float) -> bool:
-    """
-    Whether ``vehicle.handle_collisions(other, dt)`` may do anything: false only where highway-env's own pre-check
-    (centre distance beyond the half diagonals plus what ``vehicle`` covers in ``dt``) returns at once.
-    """
+    """Whether ``vehicle.handle_collisions(other, dt)`` may do anything: false where highway-env's own pre-check returns."""
     if (
         type(vehicle)._is_colliding is not RoadObject._is_colliding
         or type(vehicle).handle_collisions is not RoadObject.handle_collisions
@@ -237,10 +222,7 @@ class FastRoad(Road):
 
 
 def predict_constant_speed(vehicle: Vehicle, times: np.ndarray) -> tuple[list[np.ndarray], list[float]]:
-    """
-    ``vehicle.predict_trajectory_constant_speed(times)`` without copying the road: highway-env's ``Vehicle`` rolls out
-    a deep copy of itself, which takes the road and every vehicle on it along; the copy's kinematics read no road.
-    """
+    """``vehicle.predict_trajectory_constant_speed(times)`` without the deep copy of the road (its kinematics read none)."""
     if type(vehicle).predict_trajectory_constant_speed is not Vehicle.predict_trajectory_constant_speed:
         return vehicle.predict_trajectory_constant_speed(times)
     detached = copy.copy(vehicle)
@@ -304,10 +286,7 @@ def _clip(value: Any, low: float, high: float) -> Any:
 
 
 class FastIDMVehicle(IDMVehicle):
-    """
-    highway-env's ``IDMVehicle``, taking the same decisions clipping Python numbers (``np.clip`` of one number costs
-    microseconds); numpy's trigonometric functions are kept (``math``'s differ in the last bit).
-    """
+    """highway-env's ``IDMVehicle`` clipping Python numbers, not with ``np.clip`` (numpy's trigonometry is kept: same bits)."""
 
     def steering_control(self, target_lane_index: LaneIndex) -> float:
         """``ControlledVehicle.steering_control``'s steering angle [rad] towards a lane's centre."""
