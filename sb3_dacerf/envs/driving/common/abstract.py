@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import os
 from collections import deque
 from typing import TYPE_CHECKING, ClassVar
@@ -30,19 +29,6 @@ _REPLACED_STOCK_KEYS = (
     "reward_speed_range normalize_reward offroad_terminal vehicles_density ego_spacing initial_lane_id "
     "controlled_vehicles destination"
 ).split()
-
-
-@contextlib.contextmanager
-def _headless_video_driver():
-    """Without a display, let pygame initialise SDL's ``offscreen`` video driver, restoring the environment after."""
-    headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") or "SDL_VIDEODRIVER" in os.environ)
-    if headless:
-        os.environ["SDL_VIDEODRIVER"] = "offscreen"
-    try:
-        yield
-    finally:
-        if headless:
-            os.environ.pop("SDL_VIDEODRIVER", None)
 
 
 class PaperDrivingMixin(_HighwayEnv):
@@ -196,7 +182,6 @@ class PaperDrivingMixin(_HighwayEnv):
         Apply ``[Δa_x, Δδ]`` (clipped to the action space), simulate one policy period, then perceive the scene once.
 
         :raises ValueError: an action of another shape, or with NaN / infinite values
-        :raises gymnasium.error.ResetNeeded: before the first ``reset()``
         """
         if self.road is None or self.vehicle is None:
             raise ResetNeeded("Cannot call step() before reset(): call env.reset(seed=...) first")
@@ -224,8 +209,15 @@ class PaperDrivingMixin(_HighwayEnv):
 
     def render(self) -> np.ndarray | None:
         if self.viewer is None and self.render_mode is not None:
-            with _headless_video_driver():
+            # Without a display, pygame initialises SDL's offscreen video driver (the environment is restored after)
+            headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") or "SDL_VIDEODRIVER" in os.environ)
+            if headless:
+                os.environ["SDL_VIDEODRIVER"] = "offscreen"
+            try:
                 self.viewer = EnvViewer(self)
+            finally:
+                if headless:
+                    os.environ.pop("SDL_VIDEODRIVER", None)
             if self.config["offscreen_rendering"]:
                 self.viewer.enabled = True  # highway-env's viewer draws nothing under SDL's "dummy" driver otherwise
         return super().render()
@@ -241,23 +233,18 @@ class PaperDrivingMixin(_HighwayEnv):
         """The highest reference speed [m/s] the scenario allows in its current state: none (``inf``) by default."""
         return np.inf
 
-    def _road_clearance(self, position: np.ndarray) -> float:
-        """Distance [m] from a position to the nearest road edge, negative off the road."""
+    def _road_clearance(self, position: np.ndarray) -> float:  # [m] to the nearest road edge, negative off the road
         raise NotImplementedError
 
-    def _is_success(self) -> bool:
-        """Whether the episode's task is achieved (route completed / destination reached)."""
+    def _is_success(self) -> bool:  # whether the episode's task is achieved
         raise NotImplementedError
 
     def _severe_penalty(self) -> float:
         """
-        The (positive) penalty of a collision, of leaving the road or of a stall at the current step: a number
-        ``collision_penalty`` as it is (the paper's example: 200), or with ``"dynamic"``, this package's formula for
-        the paper's "or dynamically calculated", ``dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) *
-        steps_left``, with the policy steps left until the time limit. ``rho_step`` is the best reward rate, so ending
-        the episode is worse, by at least the base, than driving on at any average reward above
-        ``-dynamic_penalty_cost_rate`` per step. A ``dynamic_penalty_discount`` γ < 1 replaces ``steps_left`` by
-        ``(1 - γ^steps_left) / (1 - γ)``: the same for a learner of the return discounted by γ.
+        The (positive) penalty of a severe event at the current step: ``collision_penalty``, or if ``"dynamic"``,
+        ``dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left`` (the policy steps left, or with
+        a ``dynamic_penalty_discount`` γ < 1 their discounted count ``(1 - γ^steps_left) / (1 - γ)``): ending the
+        episode is then worse, by at least the base, than driving on at any reward above ``-dynamic_penalty_cost_rate``.
         """
         config = self.config
         if config["collision_penalty"] != "dynamic":

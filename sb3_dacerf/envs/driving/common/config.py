@@ -79,47 +79,38 @@ def severe_penalty(value: object) -> str | None:
 VEHICLE_CLASSES = tuple(
     f"highway_env.vehicle.behavior.{name}" for name in ("IDMVehicle", "LinearVehicle", "AggressiveVehicle", "DefensiveVehicle")
 )
-_RHO_KEYS = "lat long heading acc steer yaw jerk steer_rate step front side space rear boundary".split()
-
 COMMON_RULES: dict[str, Rule] = {
-    # highway-env's simulation and rendering keys
-    "simulation_frequency": number(0, low_open=True, integer=True),
-    "policy_frequency": number(0, low_open=True, integer=True),
+    # highway-env's simulation and rendering keys, then the paper's task layer
+    **dict.fromkeys(
+        ["simulation_frequency", "policy_frequency", "screen_width", "screen_height"], number(0, low_open=True, integer=True)
+    ),
     "other_vehicles_type": choice(VEHICLE_CLASSES),
-    "screen_width": number(0, low_open=True, integer=True),
-    "screen_height": number(0, low_open=True, integer=True),
     "centering_position": interval(0.0, 1.0),
-    "scaling": number(0, low_open=True),
-    "show_trajectories": boolean(),
-    "render_agent": boolean(),
     "offscreen_rendering": boolean(allow_none=True),
-    "manual_control": boolean(),
-    "real_time_rendering": boolean(),
-    "neighbour_vehicles_connected_lanes": boolean(),
-    # the paper's task layer
-    "duration": number(0, low_open=True),
-    "perception_distance": number(0, low_open=True),
+    **dict.fromkeys(
+        "show_trajectories render_agent manual_control real_time_rendering neighbour_vehicles_connected_lanes "
+        "reference_speed_follows_traffic".split(),
+        boolean(),
+    ),
+    **dict.fromkeys(
+        "scaling duration perception_distance reference_waypoint_interval position_scale speed_scale huber_delta "
+        "safe_time_headway stall_distance".split(),
+        number(0, low_open=True),
+    ),
+    **dict.fromkeys(
+        "boundary_threshold dynamic_penalty_base dynamic_penalty_cost_rate stall_timeout rho_lat rho_long rho_heading "
+        "rho_acc rho_steer rho_yaw rho_jerk rho_steer_rate rho_step rho_front rho_side rho_space rho_rear rho_boundary".split(),
+        number(0),
+    ),
     "surrounding_vehicles": number(0, integer=True),
     "reference_waypoints": number(1, integer=True),
-    "reference_waypoint_interval": number(0, low_open=True),
-    "position_scale": number(0, low_open=True),
-    "speed_scale": number(0, low_open=True),
-    "acceleration_increment_range": interval(contains_zero=True),
-    "steering_increment_range": interval(contains_zero=True),
-    "acceleration_range": interval(contains_zero=True),
+    **dict.fromkeys(
+        ["acceleration_increment_range", "steering_increment_range", "acceleration_range"], interval(contains_zero=True)
+    ),
     "steering_range": interval(-1.5, 1.5, contains_zero=True),  # [rad] the bicycle model needs |δ| < π/2
-    "huber_delta": number(0, low_open=True),
-    "safe_time_headway": number(0, low_open=True),
-    "reference_speed_follows_traffic": boolean(),
     "safe_space_margin": positive_pair,
-    "boundary_threshold": number(0),
     "collision_penalty": severe_penalty,
-    "dynamic_penalty_base": number(0),
-    "dynamic_penalty_cost_rate": number(0),
     "dynamic_penalty_discount": number(0, 1, low_open=True),
-    "stall_timeout": number(0),
-    "stall_distance": number(0, low_open=True),
-    **{f"rho_{name}": number(0) for name in _RHO_KEYS},
 }
 
 

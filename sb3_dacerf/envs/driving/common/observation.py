@@ -1,18 +1,13 @@
 """
-What the ego perceives (:class:`Scene`, computed once per step) and the paper's flat ego-frame observation of it.
+What the ego perceives (:class:`Scene`, computed once per step) and the paper's flat ``float32`` ego-frame
+observation of it (x along the ego heading, y along highway-env's lateral axis):
 
-Observation (flat ``float32`` vector, ego frame: x along the ego heading, y along highway-env's lateral axis, i.e. to
-the driver's right on the rendered image, where world y points down)
-
-- ego, 5 values: ``[v_x / speed_scale, v_y / speed_scale, r, a_x, δ]``; body-frame velocity of the bicycle model (m/s),
-  yaw rate ``r`` (rad/s), commanded ``a_x`` (m/s²) and ``δ`` (rad) unscaled;
-- reference, 4 × W values (W = ``reference_waypoints``, default 10): ``[x / position_scale, y / position_scale, cos φ,
-  sin φ]`` for waypoints at the ego's projection on the reference path and then every ``reference_waypoint_interval``
-  (0.5 s) of travel at the target speed, so the spacing encodes the target speed; φ is the path heading relative to
-  the ego heading;
-- surrounding vehicles, 6 × M values (M = ``surrounding_vehicles``, default 8), nearest first, within
-  ``perception_distance``: ``[x / position_scale, y / position_scale, cos φ, sin φ, v / speed_scale, mask]``, relative
-  position of the vehicle centre, relative heading, absolute speed, mask 1; padding rows are all zeros (mask 0).
+- ego ``[v_x / speed_scale, v_y / speed_scale, r, a_x, δ]``: body-frame velocity, yaw rate, commanded a_x and δ;
+- W = ``reference_waypoints`` waypoints ``[x / position_scale, y / position_scale, cos φ, sin φ]`` from the ego's
+  projection on the reference, every ``reference_waypoint_interval`` seconds of travel at the target speed (so their
+  spacing encodes it), φ relative to the ego heading;
+- M = ``surrounding_vehicles`` vehicles within ``perception_distance``, nearest first, ``[x / position_scale,
+  y / position_scale, cos φ, sin φ, v / speed_scale, mask]`` (relative position and heading, speed); padding rows 0.
 """
 
 from __future__ import annotations
@@ -44,21 +39,15 @@ def vehicle_rows(config: dict) -> tuple[int, int, int]:
 class Scene:
     """What the ego perceives at one step, in SI units and in the ego frame."""
 
-    ego: np.ndarray
-    """[v_x, v_y, r, a_x, δ]"""
-    waypoints: np.ndarray
-    """(W, 4) reference waypoints [x, y, cos φ, sin φ]"""
-    vehicles: np.ndarray
-    """(K, 7) vehicles within perception distance, nearest first: [x, y, cos φ, sin φ, v, length, width]"""
+    ego: np.ndarray  # [v_x, v_y, r, a_x, δ]
+    waypoints: np.ndarray  # (W, 4) [x, y, cos φ, sin φ]
+    vehicles: np.ndarray  # (K, 7) within perception distance, nearest first: [x, y, cos φ, sin φ, v, length, width]
     lateral_error: float
     heading_error: float
     reference_curvature: float
-    road_clearance: float
-    """Distance from the ego centre to the road edge [m], negative off the road."""
-    reference_progress: float = 0.0
-    """Arc length of the ego's projection on its reference path [m]."""
-    reference_speed: float = 0.0
-    """The speed [m/s] the waypoints are spaced by and the speed-tracking term asks for (capped target speed)."""
+    road_clearance: float  # from the ego centre to the road edge [m], negative off the road
+    reference_progress: float = 0.0  # arc length of the ego's projection on its reference [m]
+    reference_speed: float = 0.0  # the (capped) target speed the waypoints are spaced by and the tracking term asks for
 
 
 def vehicle_gaps(vehicles: np.ndarray, ego_length: float, ego_width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
