@@ -100,17 +100,11 @@ def _no_model_file_deprecation(record: logging.LogRecord) -> bool:
 
 class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarray]):
     """
-    A ``dm_control.suite`` task through shimmy, its observation dict flattened to one ``float32`` vector (in the
-    task's order) and its action box mapped to ``[-1, 1]``; ``reset(seed=...)`` seeds the initial state, and
-    ``env.unwrapped`` is shimmy's ``DmControlCompatibilityV0`` (``env.unwrapped.physics``: MuJoCo's state).
-
-    :param domain_name: dm_control domain, e.g. ``"humanoid"``
-    :param task_name: task of that domain, e.g. ``"stand"``
-    :param render_mode: ``"rgb_array"`` (needs a MuJoCo OpenGL backend: without a display ``MUJOCO_GL=egl`` or
-        ``osmesa``) or ``"human"`` (needs a display)
-    :param render_kwargs: passed to ``physics.render``, e.g. ``dict(height=240, width=320, camera_id=0)``
-    :param task_kwargs: passed to ``dm_control.suite.load`` (``random`` is set by ``reset(seed=...)``)
-    :param environment_kwargs: passed to ``dm_control.suite.load``
+    A ``dm_control.suite`` task (``domain_name``, ``task_name``) through shimmy, its observation dict flattened to one
+    ``float32`` vector (in the task's order) and its action box mapped to ``[-1, 1]``; ``reset(seed=...)`` seeds the
+    initial state; ``env.unwrapped`` is shimmy's ``DmControlCompatibilityV0``. ``render_mode="rgb_array"`` needs a
+    MuJoCo OpenGL backend (without a display, ``MUJOCO_GL=egl`` or ``osmesa``), ``"human"`` a display;
+    ``render_kwargs`` go to ``physics.render``, ``task_kwargs`` and ``environment_kwargs`` to ``dm_control.suite.load``.
     """
 
     metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012  (gymnasium.Env declares it without ClassVar)
@@ -142,12 +136,10 @@ class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarr
                 raise _no_gl_error(f"{domain_name}-{task_name} needs OpenGL at every reset") from error
         super().__init__(DmControlCompatibilityV0(dm_env, render_mode=render_mode, render_kwargs=render_kwargs))
         self.metadata = {**self.metadata, "render_fps": round(1.0 / dm_env.control_timestep())}
-
         # Keys in the task's own order (shimmy's Dict space sorts them)
         self._obs_keys = tuple(dm_env.observation_spec().keys())
         n_obs = sum(int(np.prod(spec.shape)) for spec in dm_env.observation_spec().values())
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(n_obs,), dtype=np.float32)
-
         action_spec = dm_env.action_spec()
         self._action_low = np.asarray(action_spec.minimum, dtype=np.float64)
         self._action_scale = (np.asarray(action_spec.maximum, dtype=np.float64) - self._action_low) / 2.0

@@ -1,9 +1,7 @@
 """
-Traffic densities of the driving scenarios, and the distributions an env draws one from at every reset:
-``gym.make(env_id, density=...)`` takes ``"sparse"``, ``"normal"`` or ``"dense"`` (every episode), ``"random"`` (the
-three alike), a list of densities (drawn alike) or a dict of weights, e.g. ``{"sparse": 1, "normal": 2}`` (drawn in
-proportion; densities left out or with weight 0 never are). The draw comes from the env's random generator, so
-``reset(seed=s)`` gives the same density every time. This module imports no simulator.
+Traffic densities of the driving scenarios: ``gym.make(env_id, density=...)`` takes ``"sparse"``, ``"normal"`` or
+``"dense"``, or a distribution each reset draws the episode's density from with the env's generator: ``"random"``,
+a list of densities (drawn alike) or a dict of weights, e.g. ``{"sparse": 1, "normal": 2}``. Imports no simulator.
 """
 
 from __future__ import annotations
@@ -27,10 +25,8 @@ _FORMS = (
 
 def density_weights(density: object) -> dict[str, float]:
     """
-    :param density: a density, ``"random"``, a list of densities or a dict of weights >= 0 with a positive sum
-    :return: ``{density: probability}`` of the densities that can be drawn, in the order of :data:`DENSITIES`
-    :raises ValueError: an unknown or repeated density, an empty list, weights that are negative, not finite or all 0
-    :raises TypeError: a value of another type
+    :return: ``{density: probability}`` of the densities a ``density`` spec draws, in the order of :data:`DENSITIES`
+    :raises ValueError: an unknown or repeated density, an empty list, weights negative, not finite or all 0
     """
     if isinstance(density, str):
         if density == "random":

@@ -1,23 +1,12 @@
 """
-Urban intersection of the paper (``DACERF-Intersection-v0``), on highway-env's ``IntersectionEnv``.
-
-A four-way crossroads (one 4 m lane each way, 22 m × 22 m junction box) with IDM traffic spawned on every arm; among
-traffic vehicles the horizontal road has priority. Between the ego and a traffic vehicle about to conflict,
-``right_of_way="first_come"`` (default) lets the one ahead go first, ``"priority"`` applies highway-env's lane
-priorities to the ego too. The ego starts 20-40 m before the junction on the south arm (small lateral and heading
-offsets) and follows a route drawn among ``routes``: the approach lane, highway-env's turning lane and the exit lane;
-the U-turn (not drawn by default: barely drivable at the paper's steering rate) is a keyhole loop through the
-junction box. Its target speed is drawn from the route's ``reference_speed_ranges``. ``reference_start_probability``
-(training only) starts a share of the episodes on the path, from 20 m before the junction to 15 m into the exit lane.
-``density`` sets the initial vehicle count and the spawn probability per step (sparse 5 / 0.03, normal 10 / 0.06,
-dense 15 / 0.12).
-
-Reward: the paper's terms with its constant severe-event penalty 200. With ``yield_at_junction`` (default) the
-reference speed yields at the stop line to traffic whose crossing overlaps the ego's
-(:meth:`IntersectionEnv.reference_speed_cap`): waiting for a gap costs nothing, standing without a reason costs the
-speed-tracking term. The episode ends on a collision, when the ego's centre leaves the road (the two 8 m roads and
-the junction box) or 25 m into an exit lane (a success at the route's exit only), and is truncated after
-``duration`` (40 s). Observation scaling: positions / 25 m, speeds / 10 m/s. ``info["route"]`` names the route.
+Urban intersection of the paper (``DACERF-Intersection-v0``), on highway-env's ``IntersectionEnv``: a four-way
+crossroads (one 4 m lane each way, 22 m junction box) with IDM traffic on every arm, the horizontal road having
+priority. The ego starts 20-40 m before the junction on the south arm and follows a route drawn among ``routes``
+(highway-env's lanes; the U-turn, not drawn by default, is a keyhole loop through the junction box) at a target speed
+drawn from ``reference_speed_ranges``. Between the ego and traffic, ``right_of_way`` ``"first_come"`` lets the one
+ahead go first; with ``yield_at_junction`` the reference speed yields at the stop line to crossing traffic
+(:meth:`IntersectionEnv.reference_speed_cap`). The severe-event penalty is the paper's constant 200. The episode ends
+on a collision, off the road, or 25 m into an exit lane (a success at the route's exit), and is truncated after 40 s.
 """
 
 from __future__ import annotations
@@ -148,13 +137,11 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     }
     CONFIG_RULES: ClassVar[dict[str, Rule]] = {
         "initial_vehicle_count": number(0, integer=True),
-        "spawn_probability": number(0.0, 1.0),
+        **dict.fromkeys(["spawn_probability", "reference_start_probability"], number(0.0, 1.0)),
+        **dict.fromkeys(["clear_crashed_traffic", "yield_at_junction"], boolean()),
         "routes": _routes_rule,
         "reference_speed_ranges": _speed_ranges_rule,
-        "clear_crashed_traffic": boolean(),
-        "reference_start_probability": number(0.0, 1.0),
         "right_of_way": choice(RIGHT_OF_WAY),
-        "yield_at_junction": boolean(),
     }
     TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset({"reference_start_probability"})
     YIELD_DECELERATION = 0.5
@@ -177,12 +164,9 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 "reference_speed_ranges": {"straight": [6.0, 9.0], "left": [4.0, 7.0], "right": [3.0, 5.0], "u_turn": [3.0, 4.5]},
                 "position_scale": 25.0,
                 "speed_scale": 10.0,
-                # Remove the wrecks of traffic-only crashes (highway-env's junction behaviour fails now and then)
-                "clear_crashed_traffic": True,
-                # Between the ego and traffic: "first_come" (the one ahead goes first) or "priority" (highway-env's)
-                "right_of_way": "first_come",
-                # The reference speed yields at the stop line (reference_speed_cap); False: the paper's reference
-                "yield_at_junction": True,
+                "clear_crashed_traffic": True,  # remove the wrecks of traffic-only crashes
+                "right_of_way": "first_come",  # between the ego and traffic: the one ahead goes first; or "priority"
+                "yield_at_junction": True,  # the reference speed yields at the stop line; False: the paper's reference
                 "collision_penalty": 200.0,  # the paper's constant severe-event penalty
                 # Training only: the probability of an episode starting on the reference path (with the steering of
                 # its curvature) from 20 m before the junction to 10 m before the exit distance
@@ -263,12 +247,9 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     def reference_speed_cap(self) -> float:
         """
         While the ego must yield, the speed [m/s] from which braking at ``YIELD_DECELERATION`` stops it at the stop
-        line; ``inf`` otherwise (``yield_at_junction`` off, a U-turn, an ego in the junction or unable to stop before).
-
-        It must yield when a traffic vehicle's time window at a conflict of their paths (:func:`turn_conflicts`; along
-        its planned route, arriving no earlier than accelerating at 3 m/s² up to 9 m/s and leaving no later than at
-        2 m/s, widened by ``YIELD_MARGIN``) overlaps the ego's (accelerating at 0.7 m/s² up to its target speed, its
-        body 3 m before and after the conflict).
+        line (``inf`` otherwise): when a traffic vehicle's time window at a conflict of their paths (along its route,
+        arriving no earlier than at 3 m/s² up to 9 m/s, leaving no later than at 2 m/s, widened by ``YIELD_MARGIN``)
+        overlaps the ego's (at 0.7 m/s² up to its target speed, its body 3 m before and after the conflict).
         """
         if not self.config["yield_at_junction"] or self.route == "u_turn":
             return np.inf
@@ -289,10 +270,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 continue
             lane_index = vehicle.lane_index
             turn = next((lane for lane in (lane_index, *(vehicle.route or ())) if lane[0].startswith("ir")), None)
-            if turn is None:
-                continue
-            pair = (int(turn[0][2:]), int(turn[1][2:]))
-            if pair not in conflicts:
+            if turn is None or (pair := (int(turn[0][2:]), int(turn[1][2:]))) not in conflicts:
                 continue
             _, _, traffic_in, traffic_out = conflicts[pair]
             s = vehicle.lane.local_coordinates(vehicle.position)[0]

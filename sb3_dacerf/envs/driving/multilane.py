@@ -1,14 +1,9 @@
 """
-Multi-lane highway of the paper (``DACERF-Multilane-v0``), on highway-env's ``HighwayEnv``.
-
-A straight road of ``lanes_count`` (3) lanes with IDM / MOBIL traffic that changes lanes and cuts in (only the ego's
-collisions are checked, as in ``highway-fast-v0``). The reference is the centre line of the ego's lane or of an
-adjacent one (a lane change to merge into), its target speed drawn from ``reference_speed_range``; the ego starts at
-about that speed with small lateral and heading offsets. Only the stretch ``traffic_window`` around the ego (80 m
-behind to 120 m ahead) is simulated: vehicles leaving it re-enter at the other end, so that ``vehicles_count`` stays
-(``density``: sparse 6, normal 12, dense 20). The episode ends on a collision or when the ego's centre leaves the
-carriageway, and is truncated after ``duration`` (30 s), a success if reached safely. Observation scaling:
-positions / 50 m, speeds / 30 m/s.
+Multi-lane highway of the paper (``DACERF-Multilane-v0``), on highway-env's ``HighwayEnv``: ``lanes_count`` lanes of
+IDM / MOBIL traffic that changes lanes and cuts in (only the ego's collisions are checked). The reference is the
+centre line of the ego's lane or of an adjacent one, at a target speed drawn from ``reference_speed_range``. Only
+``traffic_window`` around the ego is simulated: vehicles leaving it re-enter at the other end, keeping
+``vehicles_count``. The episode ends on a collision or off the road, and is truncated (a success) after ``duration``.
 """
 
 from __future__ import annotations
@@ -89,12 +84,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         ego_lane = network.get_lane(("0", "1", ego_lane_id))
         x0 = 20.0 - config["traffic_window"][0]
         self.reference_speed = float(rng.uniform(*config["reference_speed_range"]))
-        ego = self.action_type.vehicle_class(
-            self.road,
-            ego_lane.position(x0, rng.normal(0.0, 0.2)),
-            heading=ego_lane.heading_at(x0) + rng.normal(0.0, 0.01),
-            speed=self._start_speed(),
-        )
+        position, heading = ego_lane.position(x0, rng.normal(0.0, 0.2)), ego_lane.heading_at(x0) + rng.normal(0.0, 0.01)
+        ego = self.action_type.vehicle_class(self.road, position, heading=heading, speed=self._start_speed())
         self.controlled_vehicles = [ego]
         self.road.vehicles.append(ego)
 
@@ -143,13 +134,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
                 self.road.vehicles.remove(vehicle)
                 self._pending_entries.append(dx < behind)
         # Entries that find no free spot wait for a later step, so the vehicle count stays constant.
-        self._pending_entries = [
-            enters_ahead
-            for enters_ahead in self._pending_entries
-            if not self._place_traffic_vehicle(
-                *((ego_x + ahead - 20.0, ego_x + ahead) if enters_ahead else (ego_x + behind, ego_x + behind + 20.0))
-            )
-        ]
+        windows = {True: (ego_x + ahead - 20.0, ego_x + ahead), False: (ego_x + behind, ego_x + behind + 20.0)}
+        self._pending_entries = [front for front in self._pending_entries if not self._place_traffic_vehicle(*windows[front])]
 
     def _road_clearance(self, position: np.ndarray) -> float:
         lane_width = AbstractLane.DEFAULT_WIDTH

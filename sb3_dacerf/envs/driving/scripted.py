@@ -1,15 +1,7 @@
 """
-Scripted drivers of the driving scenarios: baselines to compare learnt policies with, and demonstrators.
-
-:class:`ScriptedDriver` reads only the observation (and the env's config for scales and bounds): pure pursuit on the
-observed waypoints, a speed controller towards the target speed that their spacing encodes, braking for the nearest
-vehicle in its corridor ahead and, with ``yield_to_crossing``, for any vehicle whose constant-velocity prediction meets
-its path within ``horizon`` seconds. :class:`JunctionDriver`, the intersection's better demonstrator, adds a gap
-acceptance at the stop line that reads the traffic's planned routes from the simulator. Example::
-
-    driver = ScriptedDriver(env)
-    obs, _ = env.reset(seed=0)
-    obs, reward, terminated, truncated, info = env.step(driver(obs))
+Scripted drivers of the driving scenarios, baselines and demonstrators: ``env.step(ScriptedDriver(env)(obs))``.
+:class:`ScriptedDriver` reads only the observation (and the env's config for scales and bounds);
+:class:`JunctionDriver` adds a gap acceptance at the intersection's stop line that reads the traffic's routes.
 """
 
 from __future__ import annotations
@@ -26,12 +18,11 @@ from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, Intersectio
 
 class ScriptedDriver:
     """
-    Reference tracker braking for the vehicle ahead and, optionally, yielding to crossing traffic.
+    Pure pursuit on the observed waypoints, a speed controller towards the target speed their spacing encodes, braking
+    for the nearest vehicle in its corridor ahead and, with ``yield_to_crossing``, for any vehicle whose
+    constant-velocity prediction comes within ``conflict_distance`` [m] of its path within ``horizon`` [s].
 
     :param env: a ``DACERF-Multilane-v0`` / ``DACERF-Intersection-v0`` env (wrapped or not)
-    :param yield_to_crossing: brake for vehicles predicted to meet the ego's path
-    :param horizon: prediction horizon of the yielding check [s]
-    :param conflict_distance: centre distance counted as a conflict [m]
     """
 
     def __init__(self, env: gym.Env, yield_to_crossing: bool = True, horizon: float = 2.5, conflict_distance: float = 3.0):
@@ -43,12 +34,9 @@ class ScriptedDriver:
             )
         config = unwrapped.config
         self.position_scale, self.speed_scale = config["position_scale"], config["speed_scale"]
-        self.n_waypoints = config["reference_waypoints"]
-        self.waypoint_interval = config["reference_waypoint_interval"]
-        self.length = unwrapped.vehicle.LENGTH
-        self.yield_to_crossing = yield_to_crossing
-        self.horizon, self.conflict_distance = horizon, conflict_distance
-        self._unwrapped = unwrapped
+        self.n_waypoints, self.waypoint_interval = config["reference_waypoints"], config["reference_waypoint_interval"]
+        self.length, self._unwrapped = unwrapped.vehicle.LENGTH, unwrapped
+        self.yield_to_crossing, self.horizon, self.conflict_distance = yield_to_crossing, horizon, conflict_distance
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """:return: the action, for the flat observation of one env, towards the command this driver wants"""
@@ -102,38 +90,27 @@ class JunctionDriver(ScriptedDriver):
     A gap-accepting driver for ``DACERF-Intersection-v0``. It tracks the reference as :class:`ScriptedDriver` does,
     and before its front crosses the stop line it checks its whole crossing against the traffic within 80 m, each
     vehicle predicted along its planned route (read from the simulator): the vehicle's time window on the ego's path
-    (arriving no earlier than accelerating at ``traffic_acceleration`` up to ``traffic_max_speed``, leaving no later
-    than at ``traffic_min_speed``, widened by ``margin``) against the ego's (accelerating at ``ego_acceleration`` up to
-    the target speed). On a conflict it brakes, at most at ``approach_deceleration``, to stop before it (at the stop
-    line at the latest); conflicts it can no longer stop before are passed. In the junction it is committed, braking
-    only for the vehicle ahead. Vehicles are three circles along their axis: paths conflict where circles come within
-    ``conflict_distance`` [m].
+    against the ego's (see the class constants). On a conflict it brakes to stop before it (at the stop line at the
+    latest); conflicts it can no longer stop before are passed. In the junction it is committed, braking only for the
+    vehicle ahead. Vehicles are three circles along their axis: paths conflict where circles come within 3.1 m.
     """
 
     CIRCLE_OFFSETS = np.array([-1.67, 0.0, 1.67])
     """Centres of the three circles covering a 5 m x 2 m vehicle, along its axis from its centre [m]."""
     PREDICTION_DISTANCES = np.arange(0.0, 80.0, 1.0)
     """Distances along each traffic vehicle's route at which it is predicted [m]."""
+    TRAFFIC_ACCELERATION, TRAFFIC_MAX_SPEED, TRAFFIC_MIN_SPEED, MARGIN = 3.0, 9.0, 2.0, 1.0
+    """A traffic vehicle arrives no earlier than accelerating at [m/s²] up to [m/s], leaves no later than at [m/s],
+    each widened by [s]."""
+    EGO_ACCELERATION, APPROACH_DECELERATION = 0.7, 0.5
+    """[m/s²] of the ego's crossing plan (up to its target speed) and at most of its approach to a stop."""
 
-    def __init__(
-        self,
-        env: gym.Env,
-        conflict_distance: float = 3.1,
-        margin: float = 1.0,
-        traffic_acceleration: float = 3.0,
-        traffic_max_speed: float = 9.0,
-        traffic_min_speed: float = 2.0,
-        ego_acceleration: float = 0.7,
-        approach_deceleration: float = 0.5,
-    ):
-        super().__init__(env, yield_to_crossing=False)
+    def __init__(self, env: gym.Env):
+        super().__init__(env, yield_to_crossing=False, conflict_distance=3.1)
         if not isinstance(env.unwrapped, IntersectionEnv):
             raise TypeError(
                 f"JunctionDriver drives DACERF-Intersection-v0, got {type(env.unwrapped).__name__}: use ScriptedDriver"
             )
-        self.conflict_distance, self.margin, self.ego_acceleration = conflict_distance, margin, ego_acceleration
-        self.traffic_acceleration, self.traffic_max_speed = traffic_acceleration, traffic_max_speed
-        self.traffic_min_speed, self.approach_deceleration = traffic_min_speed, approach_deceleration
         self.braking = -float(env.unwrapped.config["acceleration_range"][0])
 
     def _acceleration(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float, reference_speed: float) -> float:
@@ -148,7 +125,7 @@ class JunctionDriver(ScriptedDriver):
             stop = self._stop_point(waypoints[:, :2], v_x, reference_speed, to_line)
             if stop is not None:
                 room = stop - self.length / 2 - 1.0
-                allowed = min(np.sqrt(2 * self.approach_deceleration * max(room, 0.0)), reference_speed)
+                allowed = min(np.sqrt(2 * self.APPROACH_DECELERATION * max(room, 0.0)), reference_speed)
                 approach = -self.braking if room <= 0.5 else float(np.clip(allowed - v_x, -self.braking, self.braking))
                 desired = min(desired, approach)
         return desired
@@ -162,7 +139,7 @@ class JunctionDriver(ScriptedDriver):
         arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))])
         s = np.arange(0.0, arc[-1], 0.5)
         path = np.column_stack([np.interp(s, arc, points[:, 0]), np.interp(s, arc, points[:, 1])])
-        times = travel_time(s, max(v_x, 0.0), self.ego_acceleration, max(reference_speed, v_x))
+        times = travel_time(s, max(v_x, 0.0), self.EGO_ACCELERATION, max(reference_speed, v_x))
         tangents = np.gradient(path, axis=0)
         tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-9)
         ego_circles = path[:, None, :] + self.CIRCLE_OFFSETS[None, :, None] * tangents[:, None, :]
@@ -182,13 +159,13 @@ class JunctionDriver(ScriptedDriver):
                 continue
             s_in, s_out = s[ego_index].min(), s[ego_index].max()
             first, last = distances[traffic_index].min(), distances[traffic_index].max()
-            traffic_in = float(travel_time(first, speed, self.traffic_acceleration, self.traffic_max_speed))
-            traffic_out = last / max(speed, self.traffic_min_speed)
+            traffic_in = float(travel_time(first, speed, self.TRAFFIC_ACCELERATION, self.TRAFFIC_MAX_SPEED))
+            traffic_out = last / max(speed, self.TRAFFIC_MIN_SPEED)
             ego_in = float(np.interp(s_in - occupancy, s, times)) if s_in > occupancy else 0.0
             ego_out = float(np.interp(s_out + occupancy, s, times))
             if (
-                ego_in < traffic_out + self.margin
-                and traffic_in - self.margin < ego_out
+                ego_in < traffic_out + self.MARGIN
+                and traffic_in - self.MARGIN < ego_out
                 and stopping <= s_in - self.length / 2 + 0.5
             ):
                 stops.append(s_in)

@@ -34,14 +34,11 @@ _REPLACED_STOCK_KEYS = (
 class PaperDrivingMixin(_HighwayEnv):
     """
     The paper's task layer, first in the bases of a subclass of a highway-env environment, which builds
-    ``self.reference`` and ``self.reference_speed`` with the ego and implements ``_road_clearance`` and
-    ``_is_success``. ``step()`` simulates, then perceives the :class:`Scene` once (``self.scene``), from which the
-    observation, reward, termination and info are read.
+    ``self.reference`` and ``self.reference_speed`` with the ego and implements ``_road_clearance`` and ``_is_success``.
 
     :param config: overrides of ``default_config()``; unknown keys and invalid values raise ``ValueError``
     :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: ``"sparse"``, ``"normal"``, ``"dense"``, or a distribution that each reset draws the episode's
-        density from (:mod:`sb3_dacerf.envs.driving.density`); ``config`` must then leave out the density's keys
+    :param density: a density or a distribution of them (:mod:`sb3_dacerf.envs.driving.density`)
     """
 
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}

@@ -1,8 +1,6 @@
 """
-The paper's incremental action ``[Δa_x, Δδ]`` (default bounds ``[-0.4, 0.25]`` m/s² and ``±0.025`` rad per 0.1 s
-step), integrated into the commanded acceleration ``a_x`` and front-wheel angle ``δ`` (default bounds ±0.8 m/s² and
-±0.571 rad): the inputs of highway-env's kinematic bicycle model. The action space is a ``Box`` of the raw increment
-bounds (SB3 rescales Box bounds itself).
+The paper's incremental action ``[Δa_x, Δδ]``, integrated into the commanded acceleration ``a_x`` and front-wheel
+angle ``δ`` of highway-env's kinematic bicycle model; its space is a ``Box`` of the raw increment bounds.
 """
 
 from __future__ import annotations
@@ -39,11 +37,7 @@ class IncrementalAction(ContinuousAction):
         return np.clip(np.asarray(desired, dtype=np.float64) - self.command, self.increment_low, self.increment_high)
 
     def check(self, action: np.ndarray) -> np.ndarray:
-        """
-        :param action: the action given to ``step()`` (values beyond the bounds are allowed: ``act`` clips them)
-        :return: the action as a float64 array of shape (2,)
-        :raises ValueError: wrong shape, non-numeric or non-finite values
-        """
+        """:return: ``step()``'s action as a float64 array of shape (2,) (``act`` clips it), or ``ValueError``"""
         try:
             array = np.asarray(action, dtype=np.float64)
         except (TypeError, ValueError) as error:

@@ -1,7 +1,6 @@
 """
-Type and range checks of the driving envs' config values, run by ``configure()`` (at ``gym.make`` and on
-``reset(options={"config": ...})``): a wrong value fails there, naming the key, what it must be and the value given.
-Every key of an env's ``default_config()`` has a rule: :data:`COMMON_RULES`, or the scenario's ``CONFIG_RULES``.
+Type and range checks of the driving envs' config values, run by ``configure()``: every key of an env's
+``default_config()`` has a rule, in :data:`COMMON_RULES` or the scenario's ``CONFIG_RULES``.
 """
 
 from __future__ import annotations
@@ -116,13 +115,8 @@ COMMON_RULES: dict[str, Rule] = {
 
 def check_config(config: dict, rules: dict[str, Rule], defaults: dict, env_name: str) -> None:
     """
-    Check every value of a config against its rule, and the frequencies against each other.
-
-    :param config: the full config (defaults merged with the overrides)
-    :param rules: a rule per key
-    :param defaults: the default config, quoted in the messages
-    :param env_name: the env's class name, for the messages
-    :raises ValueError: naming the key, what it must be and the value given
+    Check every value of a full config against its rule, and the frequencies against each other: ``ValueError`` names
+    the env, the key, what it must be, the value given and the default.
     """
     for key, value in config.items():
         expected = rules[key](value) if key in rules else None

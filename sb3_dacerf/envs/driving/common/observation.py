@@ -27,11 +27,7 @@ VEHICLE_FEATURES = 6
 
 
 def vehicle_rows(config: dict) -> tuple[int, int, int]:
-    """
-    :param config: a driving env's config
-    :return: where its observation's vehicle rows are (the ``rows`` of
-        :class:`sb3_dacerf.common.vec_normalize.MaskedVecNormalize`): their start, number (M) and length (the mask last)
-    """
+    """:return: the start, number and length (mask last) of the vehicle rows of a driving env's observation"""
     return EGO_FEATURES + WAYPOINT_FEATURES * config["reference_waypoints"], config["surrounding_vehicles"], VEHICLE_FEATURES
 
 
@@ -126,7 +122,7 @@ def observe_scene(env: Any) -> Scene:
 class EgoFrameObservation(ObservationType):
     """The paper's flat ego-frame observation; see the module docstring for layout and scaling."""
 
-    def __init__(self, env: Any, **kwargs) -> None:
+    def __init__(self, env: Any) -> None:
         super().__init__(env)
         config = env.config
         self.n_waypoints, self.n_vehicles = config["reference_waypoints"], config["surrounding_vehicles"]

@@ -15,12 +15,7 @@ def nominal_steering(curvature: float, length: float) -> float:
 
 
 class ReferencePath:
-    """
-    A polyline with arc-length lookups.
-
-    :param points: (N, 2) world positions along the path [m], without repeated points
-    :param headings: (N,) path headings at the points [rad]
-    """
+    """A polyline of (N, 2) world positions [m] (no repeated points) and their (N,) headings, with arc-length lookups."""
 
     def __init__(self, points: np.ndarray, headings: np.ndarray) -> None:
         self.points = np.asarray(points, dtype=np.float64)
@@ -32,10 +27,7 @@ class ReferencePath:
 
     @classmethod
     def from_lanes(cls, pieces: list[tuple[AbstractLane, float, float]], step: float) -> ReferencePath:
-        """
-        :param pieces: ``(lane, start, end)`` longitudinal ranges [m] of consecutive lanes, sampled on their centre lines
-        :param step: sampling interval [m]
-        """
+        """The centre lines of consecutive ``(lane, start, end)`` longitudinal ranges [m], sampled every ``step`` m."""
         points, headings = [], []
         for i, (lane, start, end) in enumerate(pieces):
             # The last piece keeps its end point; the others leave it to the next piece's start.
@@ -71,9 +63,7 @@ class ReferencePath:
         :return: positions (K, 2) [m], headings (K,) [rad] and curvatures (K,) [1/m]
         """
         headings = np.interp(s, self.s, self.headings)
-        positions = np.empty((len(s), 2))
-        positions[:, 0] = np.interp(s, self.s, self.points[:, 0])
-        positions[:, 1] = np.interp(s, self.s, self.points[:, 1])
+        positions = np.column_stack([np.interp(s, self.s, self.points[:, 0]), np.interp(s, self.s, self.points[:, 1])])
         curvatures = np.interp(s, self.s, self.curvatures)
         if s[0] < 0.0 or s[-1] > self.s[-1]:
             beyond = np.where(s > self.s[-1], s - self.s[-1], np.minimum(s, 0.0))

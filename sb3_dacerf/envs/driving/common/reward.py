@@ -1,19 +1,11 @@
 """
-The paper's reward and cost terms (DACER-F, "Simulation Environment" and its reward / cost table); the reward is the
-sum of the signed terms, which ``info["reward_terms"]`` holds:
-
-- tracking ``-ρ_lat h(e_lat) - ρ_long h(v_x - v_ref) - ρ_φ h(e_φ)``;
-- control ``-ρ_acc |a_x|³ - ρ_steer |δ - δ_nom|`` (δ_nom: the bicycle-model steering of the reference curvature);
-- comfort ``-ρ_yaw h(r) - ρ_jerk h(Δa_x/Δt) - ρ_Δsteer h(Δδ/Δt)``;
-- liveness ``ρ_step clip(v_x, 0, 3) / 3``;
-- safe following ``-ρ_front (1 - tanh(gap / (v_x Δt_safe)))`` for the nearest vehicle in the ego's corridor ahead;
-- safe space ``-ρ_space Σ intrusion`` of vehicles into a margin box around the ego body (``ρ_side`` / ``ρ_rear``
-  for the parts alongside / behind);
-- boundary ``-ρ_boundary max(0, W_ego/2 + d_thresh - d)``, ``d`` the distance from the ego centre to the road edge;
-- ``collision``, ``off_road`` and ``stalled`` (see ``stall_timeout``): minus the severe-event penalty, which ends the
-  episode (``PaperDrivingMixin._severe_penalty``).
-
-``h(e) = δ_h² (sqrt(1 + (e/δ_h)²) - 1)`` is the pseudo-Huber penalty, ``δ_h = huber_delta``.
+The paper's reward and cost terms (DACER-F, its reward / cost table); the reward is the sum of the signed terms,
+which ``info["reward_terms"]`` holds. With the pseudo-Huber penalty ``h``: tracking ``-ρ h(error)`` of the lateral,
+speed and heading errors; control ``-ρ_acc |a_x|³ - ρ_steer |δ - δ_nom|``; comfort ``-ρ h(rate)`` of the yaw rate,
+jerk and steering rate; liveness ``ρ_step clip(v_x, 0, 3) / 3``; safe following ``-ρ_front (1 - tanh(gap / (v_x
+Δt_safe)))``; safe space ``-ρ_space Σ intrusion`` into a margin box around the ego (``ρ_side`` / ``ρ_rear`` alongside /
+behind); boundary ``-ρ_boundary max(0, W_ego/2 + d_thresh - d)``; and minus the severe-event penalty on a collision,
+leaving the road or a stall, which end the episode.
 """
 
 from __future__ import annotations
@@ -42,15 +34,9 @@ def reward_terms(
     config: dict, scene: Scene, ego: Vehicle, applied_increment: np.ndarray, severe_penalty: float, stalled: bool = False
 ) -> dict[str, float]:
     """
-    The paper's signed reward and cost terms of one step.
-
-    :param config: the env's config (weights ``rho_*`` and the other reward parameters)
-    :param scene: what the ego perceives after the step
-    :param ego: the ego vehicle (dimensions, ``crashed``)
-    :param applied_increment: the ``[Δa_x, Δδ]`` applied this step after clipping
-    :param severe_penalty: the penalty of a collision, of leaving the road or of a stall (positive)
-    :param stalled: whether the episode ends for lack of progress (``stall_timeout``)
-    :return: {term: signed contribution to the reward}, in the order of ``REWARD_TERMS``
+    The paper's signed reward and cost terms of one step, in the order of ``REWARD_TERMS``, from the env's config,
+    the scene after the step, the ego vehicle, the ``[Δa_x, Δδ]`` applied (after clipping), the (positive) penalty of
+    a severe event and whether the episode ends for lack of progress (``stall_timeout``).
     """
     huber_delta = config["huber_delta"]
     v_x, _, yaw_rate, acceleration, steering = scene.ego.tolist()

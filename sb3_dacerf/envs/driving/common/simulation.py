@@ -21,19 +21,16 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 from highway_env.vehicle.objects import Landmark, RoadObject
 
-_TOLERANCE = 1e-9
-"""[m] margin of every bound, so that rounding never rules out the right answer."""
-_ARC_SAMPLING = 0.5
-"""[m] spacing of the points that bound an arc lane's box (widened by as much: more than the arc's sagitta)."""
+_TOLERANCE = 1e-9  # [m] margin of every bound, so that rounding never rules out the right answer
+_ARC_SAMPLING = 0.5  # [m] spacing of the points that bound an arc lane's box (widened by as much: > its sagitta)
 Bound = tuple[bool | None, float, float, float, float, float, float]
 
 
 def _lane_bound(lane: AbstractLane) -> Bound:
     """
-    ``(straight, x_min, y_min, x_max, y_max, heading, half_width)``, which bound ``lane.distance_with_heading`` from
-    below (``straight`` ``None``: no bound): its position term is at least the distance to the centre line's box, its
-    heading term a straight lane's heading difference or the angle to an arc's interval of headings (beyond the arc's
-    ends the position term grows faster than the heading term shrinks, for radii >= 1 m).
+    ``(straight, x_min, y_min, x_max, y_max, heading, half_width)``, a lower bound of ``lane.distance_with_heading``
+    (``straight`` ``None``: none): the distance to the centre line's box, plus a straight lane's heading difference or
+    at least the angle to an arc's headings (beyond its ends the position term grows faster, for radii >= 1 m).
     """
     if type(lane) is StraightLane:
         (x0, y0), (x1, y1) = lane.start, lane.end
