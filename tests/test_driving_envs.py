@@ -770,6 +770,19 @@ def test_junction_driver_waits_for_the_oncoming_car_the_tracker_turns_into():
     assert steps > left_turn_against_oncoming_car(JunctionDriver, 0.0)[2]  # it waited for the car to pass
 
 
+def test_junction_driver_waits_at_the_stop_line_where_the_reference_speed_is_0():
+    from sb3_dacerf.envs.driving.scripted import JunctionDriver
+
+    env, unwrapped = lone_intersection("straight")
+    ego = unwrapped.vehicle
+    # its front 1 m before the line, standing, and crossing traffic to yield to: the yielding reference speed is 0
+    ego.position, ego.speed = np.array([ego.position[0], 11.0 + ego.LENGTH / 2 + 1.0]), 0.0
+    add_junction_vehicle(unwrapped, 1, 3, before_line=10.0, speed=8.0)
+    assert unwrapped.reference_speed_cap() == 0.0
+    action = JunctionDriver(env)(unwrapped.observation_type.observe())  # all waypoints at the ego's projection
+    assert action[0] <= 0.0
+
+
 def test_junction_driver_takes_only_the_intersection():
     from sb3_dacerf.envs.driving.scripted import JunctionDriver
 

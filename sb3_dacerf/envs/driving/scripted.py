@@ -138,6 +138,8 @@ class JunctionDriver(ScriptedDriver):
         points = np.vstack([points, points[-1] + np.outer(np.arange(1.0, 31.0), heading)])
         arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))])
         s = np.arange(0.0, arc[-1], 0.5)
+        if len(s) < 2:  # the waypoints gathered at the ego (a reference speed of 0): nothing to check
+            return None
         path = np.column_stack([np.interp(s, arc, points[:, 0]), np.interp(s, arc, points[:, 1])])
         times = travel_time(s, max(v_x, 0.0), self.EGO_ACCELERATION, max(reference_speed, v_x))
         tangents = np.gradient(path, axis=0)
