@@ -40,7 +40,7 @@ def stock_road(road, road_class=simulation.FastRoad):
 
 def run(env_id: str, steps: int, highway_env_classes: bool) -> tuple[float, list]:
     """:return: steps per second, and the episodes' observations, rewards and flags"""
-    patch = mock.patch.multiple(simulation, fast_road=stock_road, fast_vehicle=lambda vehicle: vehicle)
+    patch = mock.patch.multiple(simulation, fast_road=stock_road, fast_vehicle_class=lambda vehicle_class: vehicle_class)
     with patch if highway_env_classes else contextlib.nullcontext():
         env = gym.make(env_id, density="normal")
         actions = np.random.default_rng(0).uniform(env.action_space.low, env.action_space.high, (steps, 2)).astype(np.float32)

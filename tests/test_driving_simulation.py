@@ -12,6 +12,7 @@ import pytest
 
 pytest.importorskip("highway_env")
 
+from highway_env.road.lane import CircularLane, StraightLane
 from highway_env.road.regulation import RegulatedRoad
 from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.behavior import IDMVehicle
@@ -46,7 +47,7 @@ def stock_road(road, road_class=FastRoad):
 
 def highway_env_classes():
     """Envs made and stepped inside run on highway-env's own road, lane network and IDM vehicle classes."""
-    return mock.patch.multiple(simulation, fast_road=stock_road, fast_vehicle=lambda vehicle: vehicle)
+    return mock.patch.multiple(simulation, fast_road=stock_road, fast_vehicle_class=lambda vehicle_class: vehicle_class)
 
 
 def stepped(env_class, steps=40, seed=0, **config):
@@ -157,6 +158,21 @@ def test_closest_lane_of_a_position_that_is_not_finite_is_highway_env_s():
             assert network.get_closest_lane_index(position, heading) == RoadNetwork.get_closest_lane_index(
                 network, position, heading
             )
+
+
+def test_remembered_lane_coordinates_are_the_lane_s():
+    network = stepped(IntersectionEnv, steps=0).road.network
+    rng = np.random.default_rng(1)
+    for lane in network.lanes_list():
+        base = type(lane).__mro__[2]  # the highway-env lane class after the remembering mixin
+        assert base in (StraightLane, CircularLane)
+        for position in [*rng.uniform(-60, 60, size=(20, 2)), np.array([0.0, -0.0]), np.array([-0.0, 0.0])]:
+            for _ in range(2):  # computed, then remembered
+                assert lane.local_coordinates(position) == base.local_coordinates(lane, position)
+            assert lane.local_coordinates(list(position)) == base.local_coordinates(lane, np.array(position))
+        # positions equal but for the sign of a zero are remembered apart
+        signs = [np.copysign(1.0, c) for c in lane.local_coordinates(np.array([0.0, -0.0]))]
+        assert signs == [np.copysign(1.0, c) for c in base.local_coordinates(lane, np.array([0.0, -0.0]))]
 
 
 @pytest.mark.parametrize("env_class", SCENARIOS)

@@ -26,17 +26,13 @@ from sb3_dacerf.envs.driving.common.config import Rule, boolean, choice, interva
 from sb3_dacerf.envs.driving.common.reference import ReferencePath, nominal_steering
 from sb3_dacerf.envs.driving.common.simulation import FastRegulatedRoad
 
-ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
-"""Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
-DEFAULT_ROUTES = ["straight", "left", "right"]
-"""The routes drawn by default: the U-turn is selectable (``routes``) but not drivable at the paper's steering rate."""
+ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}  #: route -> exit arm (the ego enters from arm 0)
+DEFAULT_ROUTES = ["straight", "left", "right"]  #: the U-turn is hardly drivable at the paper's steering rate
 RIGHT_OF_WAY = ("first_come", "priority")
 
 LANE_WIDTH = AbstractLane.DEFAULT_WIDTH
-JUNCTION_HALF_SIZE = LANE_WIDTH + 5 + LANE_WIDTH / 2
-"""Half side of the junction box [m], highway-env's ``outer_distance``."""
-U_TURN_RADIUS = 8.5
-"""Radius of the U-turn arcs [m]."""
+JUNCTION_HALF_SIZE = LANE_WIDTH + 5 + LANE_WIDTH / 2  #: [m] highway-env's ``outer_distance``
+U_TURN_RADIUS = 8.5  #: [m] of the U-turn's arcs
 
 
 def u_turn_points(start: np.ndarray, heading: float, turn_sign: float, step: float) -> tuple[np.ndarray, np.ndarray]:
@@ -144,12 +140,9 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         "right_of_way": choice(RIGHT_OF_WAY),
     }
     TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset({"reference_start_probability"})
-    YIELD_DECELERATION = 0.5
-    """Deceleration [m/s²] of the yielding reference's stop at the line (the ego can brake at 0.8)."""
-    YIELD_MARGIN = 1.0
-    """Widening [s] of a traffic vehicle's time window at a conflict (``reference_speed_cap``)."""
-    EXIT_DISTANCE = 25.0
-    """Distance driven into an exit lane that ends the episode [m] (highway-env's ``has_arrived``)."""
+    YIELD_DECELERATION = 0.5  #: [m/s²] of the yielding reference's stop at the line
+    YIELD_MARGIN = 1.0  #: [s] widening of a traffic vehicle's time window at a conflict
+    EXIT_DISTANCE = 25.0  #: [m] driven into an exit lane that ends the episode
 
     @classmethod
     def default_config(cls) -> dict:
@@ -293,7 +286,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         """highway-env's spawner, with its IDM settings for junctions set per vehicle instead of on the class."""
         vehicle = super()._spawn_vehicle(longitudinal, *args, **kwargs)
         if vehicle is not None:
-            simulation.fast_vehicle(vehicle)
+            vehicle.__class__ = simulation.fast_vehicle_class(type(vehicle))  # the same state, faster decisions
             # highway-env's intersection-v0 sets these on the IDMVehicle class, which leaks into every other env.
             vehicle.DISTANCE_WANTED, vehicle.COMFORT_ACC_MAX, vehicle.COMFORT_ACC_MIN = 7.0, 6.0, -3.0
         return vehicle

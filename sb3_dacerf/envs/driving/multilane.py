@@ -42,10 +42,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         "reference_speed_range": interval(0.0, Vehicle.MAX_SPEED),
         "reference_lane": choice(REFERENCE_LANES),
     }
-    TRAFFIC_GAP = 15.0
-    """Minimum distance between the centres of two vehicles placed in the same lane [m]."""
-    EGO_CLEARANCE = (-20.0, 30.0)
-    """Free stretch [m] behind and ahead of the ego in its own lane where no vehicle is placed."""
+    TRAFFIC_GAP = 15.0  #: [m] at least between the centres of two vehicles placed in the same lane
+    EGO_CLEARANCE = (-20.0, 30.0)  #: [m] behind and ahead of the ego in its lane where no vehicle is placed
 
     @classmethod
     def default_config(cls) -> dict:
@@ -101,7 +99,7 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
     def _place_traffic_vehicle(self, low: float, high: float) -> bool:
         """:return: whether a traffic vehicle was put at a random free spot of a random lane between two abscissas [m]"""
         config, rng = self.config, self.np_random
-        vehicle_type = utils.class_from_path(config["other_vehicles_type"])
+        vehicle_type = simulation.fast_vehicle_class(utils.class_from_path(config["other_vehicles_type"]))
         ego_x, ego_lane = self.vehicle.position[0], self.vehicle.lane_index
         abscissas: dict[LaneIndex, list[float]] = {}  # of the vehicles on each lane, gathered once for the 50 draws
         for v in self.road.vehicles:
@@ -115,8 +113,7 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
                 or any(abs(v_x - x) < self.TRAFFIC_GAP for v_x in abscissas.get(lane_index, ()))
             ):
                 continue
-            speed = rng.uniform(*config["traffic_speed_range"])
-            vehicle = simulation.fast_vehicle(vehicle_type.make_on_lane(self.road, lane_index, x, speed=speed))
+            vehicle = vehicle_type.make_on_lane(self.road, lane_index, x, speed=rng.uniform(*config["traffic_speed_range"]))
             vehicle.randomize_behavior()
             vehicle.check_collisions = False  # only the ego's collisions matter, as in highway-fast-v0
             self.road.vehicles.append(vehicle)

@@ -95,10 +95,8 @@ class JunctionDriver(ScriptedDriver):
     vehicle ahead. Vehicles are three circles along their axis: paths conflict where circles come within 3.1 m.
     """
 
-    CIRCLE_OFFSETS = np.array([-1.67, 0.0, 1.67])
-    """Centres of the three circles covering a 5 m x 2 m vehicle, along its axis from its centre [m]."""
-    PREDICTION_DISTANCES = np.arange(0.0, 80.0, 1.0)
-    """Distances along each traffic vehicle's route at which it is predicted [m]."""
+    CIRCLE_OFFSETS = np.array([-1.67, 0.0, 1.67])  #: [m] the circles covering a 5 m x 2 m vehicle, along its axis
+    PREDICTION_DISTANCES = np.arange(0.0, 80.0, 1.0)  #: [m] along each traffic vehicle's route, where it is predicted
     TRAFFIC_ACCELERATION, TRAFFIC_MAX_SPEED, TRAFFIC_MIN_SPEED, MARGIN = 3.0, 9.0, 2.0, 1.0
     """A traffic vehicle arrives no earlier than accelerating at [m/s²] up to [m/s], leaves no later than at [m/s],
     each widened by [s]."""

@@ -63,7 +63,8 @@ class ReferencePath:
         :return: positions (K, 2) [m], headings (K,) [rad] and curvatures (K,) [1/m]
         """
         headings = np.interp(s, self.s, self.headings)
-        positions = np.column_stack([np.interp(s, self.s, self.points[:, 0]), np.interp(s, self.s, self.points[:, 1])])
+        positions = np.empty((len(s), 2))
+        positions[:, 0], positions[:, 1] = np.interp(s, self.s, self.points[:, 0]), np.interp(s, self.s, self.points[:, 1])
         curvatures = np.interp(s, self.s, self.curvatures)
         if s[0] < 0.0 or s[-1] > self.s[-1]:
             beyond = np.where(s > self.s[-1], s - self.s[-1], np.minimum(s, 0.0))

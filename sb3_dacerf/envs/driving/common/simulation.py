@@ -26,16 +26,52 @@ _ARC_SAMPLING = 0.5  # [m] spacing of the points that bound an arc lane's box (w
 Bound = tuple[bool | None, float, float, float, float, float, float]
 
 
+class _Remembering:
+    """
+    A lane that remembers the local coordinates of the last positions asked (a function of the position alone): in a
+    step, a vehicle's position is projected on the same lane by its controller, the neighbour search, the IDM gaps and
+    the closest-lane search. Mixed in before a highway-env lane class.
+    """
+
+    _memory: dict[bytes, tuple[float, float]]
+
+    def local_coordinates(self, position: np.ndarray) -> tuple[float, float]:
+        if type(position) is not np.ndarray or position.dtype != np.float64 or position.shape != (2,):
+            return super().local_coordinates(position)  # type: ignore[misc]
+        key = position.tobytes()  # the exact bits (-0.0 and 0.0 are two keys)
+        coordinates = self._memory.get(key)
+        if coordinates is None:
+            if len(self._memory) >= 4096:
+                self._memory.clear()
+            coordinates = self._memory[key] = super().local_coordinates(position)  # type: ignore[misc]
+        return coordinates
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_memory": {}}
+
+
+class RememberingStraightLane(_Remembering, StraightLane):
+    pass
+
+
+class RememberingCircularLane(_Remembering, CircularLane):
+    pass
+
+
+_REMEMBERING: dict[type, type] = {StraightLane: RememberingStraightLane, CircularLane: RememberingCircularLane}
+_STRAIGHT, _CIRCULAR = (StraightLane, RememberingStraightLane), (CircularLane, RememberingCircularLane)
+
+
 def _lane_bound(lane: AbstractLane) -> Bound:
     """
     ``(straight, x_min, y_min, x_max, y_max, heading, half_width)``, a lower bound of ``lane.distance_with_heading``
     (``straight`` ``None``: none): the distance to the centre line's box, plus a straight lane's heading difference or
     at least the angle to an arc's headings (beyond its ends the position term grows faster, for radii >= 1 m).
     """
-    if type(lane) is StraightLane:
+    if type(lane) in _STRAIGHT:
         (x0, y0), (x1, y1) = lane.start, lane.end
         return True, min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1), float(lane.heading), 0.0
-    if type(lane) is CircularLane and lane.radius >= 1.0:
+    if type(lane) in _CIRCULAR and lane.radius >= 1.0:
         samples = np.linspace(0.0, lane.length, max(math.ceil(abs(lane.length) / _ARC_SAMPLING), 1) + 1)
         points = np.array([lane.position(s, 0.0) for s in samples])
         low, high = points.min(axis=0) - _ARC_SAMPLING, points.max(axis=0) + _ARC_SAMPLING
@@ -59,8 +95,12 @@ class IndexedRoadNetwork(RoadNetwork):
 
     @classmethod
     def from_network(cls, network: RoadNetwork) -> IndexedRoadNetwork:
+        """:return: an indexed network of the lanes of ``network``, its straight and arc lanes made remembering"""
         indexed = cls()
         indexed.graph = network.graph
+        for lane in indexed.lanes_list():
+            if type(lane) in _REMEMBERING:
+                lane.__class__, lane._memory = _REMEMBERING[type(lane)], {}  # type: ignore[attr-defined]
         return indexed
 
     def __getstate__(self) -> dict:
@@ -130,12 +170,12 @@ def _lateral_filter(lane: AbstractLane) -> Any:
     :return: ``far(position)``, true only for positions that ``lane.on_lane(..., margin=1)`` rejects for their lateral
         offset (computed in a few float operations, with a tolerance for rounding); ``None`` for other kinds of lanes
     """
-    if type(lane) is StraightLane:
+    if type(lane) in _STRAIGHT:
         (x0, y0), (nx, ny) = lane.start, lane.direction_lateral
         x0, y0, nx, ny = float(x0), float(y0), float(nx), float(ny)
         limit = lane.width / 2 + 1.0 + _TOLERANCE
         return lambda position: abs((position[0] - x0) * nx + (position[1] - y0) * ny) > limit
-    if type(lane) is CircularLane:
+    if type(lane) in _CIRCULAR:
         (cx, cy), radius = lane.center, lane.radius
         cx, cy = float(cx), float(cy)
         limit = lane.width / 2 + 1.0 + _TOLERANCE
@@ -339,8 +379,6 @@ def fast_road(road: Road, road_class: type[Road] = FastRoad) -> Road:
     )
 
 
-def fast_vehicle(vehicle: Any) -> Any:
-    """:return: the vehicle, deciding through :class:`FastIDMVehicle` if it is an ``IDMVehicle`` (no state of its own)"""
-    if type(vehicle) is IDMVehicle:
-        vehicle.__class__ = FastIDMVehicle
-    return vehicle
+def fast_vehicle_class(vehicle_class: type) -> type:
+    """:return: :class:`FastIDMVehicle` for highway-env's ``IDMVehicle``, any other traffic class as it is"""
+    return FastIDMVehicle if vehicle_class is IDMVehicle else vehicle_class
