@@ -89,8 +89,7 @@ def _dm_control_suite(rendering: bool) -> ModuleType:
     return suite
 
 
-# MuJoCo's compiler warns, through absl's logger, about attributes of dm-control's own model files (cheetah's
-# ``settotalmass``), which the user of a task cannot change
+# MuJoCo warns, through absl, of attributes of dm-control's own model files (cheetah's settotalmass): not the user's
 _MODEL_FILE_DEPRECATION = re.compile(r"compiler attribute '\w+' is deprecated")
 
 

@@ -110,10 +110,7 @@ def _speed_ranges_rule(value: object) -> str | None:
 
 
 class FirstComeRoad(FastRegulatedRoad):
-    """
-    The regulated junction road, except that a conflict between the ego and a traffic vehicle goes to the one ahead
-    (the traffic vehicle behind yields); conflicts between traffic vehicles follow highway-env's lane priorities.
-    """
+    """The junction road on which a conflict between the ego and traffic goes to the one ahead (traffic: by priority)."""
 
     @staticmethod
     def respect_priorities(v1: Vehicle, v2: Vehicle) -> Vehicle:
@@ -203,18 +200,15 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         if self.route == "u_turn":
             left = network.get_lane(("ir0", "il1", 0))
             turn_sign = np.sign(left.heading_at(left.length) - left.heading_at(0.0))
-            # Starting the loop 1 m before the junction keeps the ego body 0.9 m or more from the road edges.
-            loop_start = approach.length - 1.0
-            loop_points, loop_headings = u_turn_points(
-                approach.position(loop_start, 0.0), approach.heading_at(loop_start), turn_sign, step
+            # The loop from 1 m before the junction keeps the ego body 0.9 m or more from the road edges.
+            loop = approach.length - 1.0
+            points, headings = u_turn_points(approach.position(loop, 0.0), approach.heading_at(loop), turn_sign, step)
+            head = ReferencePath.from_lanes([(approach, 0.0, loop)], step)
+            tail = ReferencePath.from_lanes(
+                [(exit_lane, exit_lane.local_coordinates(points[-1])[0] + step, exit_lane.length)], step
             )
-            head = ReferencePath.from_lanes([(approach, 0.0, loop_start)], step)
-            tail_start = exit_lane.local_coordinates(loop_points[-1])[0] + step
-            tail = ReferencePath.from_lanes([(exit_lane, tail_start, exit_lane.length)], step)
-            self.reference = ReferencePath(
-                np.concatenate([head.points[:-1], loop_points, tail.points]),
-                np.concatenate([head.headings[:-1], loop_headings, tail.headings]),
-            )
+            points = np.concatenate([head.points[:-1], points, tail.points])
+            self.reference = ReferencePath(points, np.concatenate([head.headings[:-1], headings, tail.headings]))
         else:
             turn = network.get_lane(("ir0", f"il{exit_arm}", 0))
             self.reference = ReferencePath.from_lanes(

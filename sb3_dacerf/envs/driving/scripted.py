@@ -87,12 +87,10 @@ class ScriptedDriver:
 
 class JunctionDriver(ScriptedDriver):
     """
-    A gap-accepting driver for ``DACERF-Intersection-v0``. It tracks the reference as :class:`ScriptedDriver` does,
-    and before its front crosses the stop line it checks its whole crossing against the traffic within 80 m, each
-    vehicle predicted along its planned route (read from the simulator): the vehicle's time window on the ego's path
-    against the ego's (see the class constants). On a conflict it brakes to stop before it (at the stop line at the
-    latest); conflicts it can no longer stop before are passed. In the junction it is committed, braking only for the
-    vehicle ahead. Vehicles are three circles along their axis: paths conflict where circles come within 3.1 m.
+    A gap-accepting driver for ``DACERF-Intersection-v0``: tracking as :class:`ScriptedDriver` does, and before the
+    stop line checking its crossing against the time windows of the traffic within 80 m on its path (along their
+    planned routes; vehicles are three circles, paths conflict within 3.1 m). It brakes to stop before a conflict (at
+    the line at the latest) unless it no longer can; in the junction it brakes only for the vehicle ahead.
     """
 
     CIRCLE_OFFSETS = np.array([-1.67, 0.0, 1.67])  #: [m] the circles covering a 5 m x 2 m vehicle, along its axis
@@ -204,5 +202,5 @@ class JunctionDriver(ScriptedDriver):
         return predictions
 
 
+#: The drivers by the names the command-line tools give them
 DEMONSTRATORS: dict[str, type[ScriptedDriver]] = dict(zip(DEMONSTRATOR_NAMES, (ScriptedDriver, JunctionDriver), strict=True))
-"""The drivers by the names the command-line tools give them."""

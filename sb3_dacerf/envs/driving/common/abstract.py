@@ -15,7 +15,7 @@ from sb3_dacerf.envs.driving.common.action import IncrementalAction
 from sb3_dacerf.envs.driving.common.config import COMMON_RULES, Rule, check_config
 from sb3_dacerf.envs.driving.common.observation import EgoFrameObservation, Scene, observe_scene
 from sb3_dacerf.envs.driving.common.reference import ReferencePath
-from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, reward_terms
+from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, REWARD_WEIGHTS, reward_terms
 from sb3_dacerf.envs.driving.density import DensitySpec, density_weights
 
 if TYPE_CHECKING:  # what the mixin is mixed into, for the type checkers
@@ -41,12 +41,9 @@ class PaperDrivingMixin(_HighwayEnv):
     :param density: a density or a distribution of them (:mod:`sb3_dacerf.envs.driving.density`)
     """
 
-    DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}
-    """Config overrides of each traffic density."""
-    CONFIG_RULES: ClassVar[dict[str, Rule]] = {}
-    """Type and range checks of the scenario's own config keys."""
-    TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset()
-    """Config keys that shape training episodes only (e.g. exploring starts): evaluations leave them out."""
+    DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}  #: config overrides of each traffic density
+    CONFIG_RULES: ClassVar[dict[str, Rule]] = {}  #: type and range checks of the scenario's own config keys
+    TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset()  #: keys that evaluations leave out (exploring starts)
     reference: ReferencePath
     reference_speed: float
     scene: Scene
@@ -90,20 +87,7 @@ class PaperDrivingMixin(_HighwayEnv):
                 "acceleration_range": [-0.8, 0.8],  # [m/s²]
                 "steering_range": [-0.571, 0.571],  # [rad]
                 "huber_delta": 1.0,
-                "rho_lat": 1.5,
-                "rho_long": 3.0,
-                "rho_heading": 0.3,
-                "rho_acc": 1.0,
-                "rho_steer": 0.1,
-                "rho_yaw": 0.7,
-                "rho_jerk": 0.5,
-                "rho_steer_rate": 0.005,
-                "rho_step": 1.0,
-                "rho_front": 10.0,
-                "rho_side": 0.0,
-                "rho_space": 2.0,
-                "rho_rear": 0.0,
-                "rho_boundary": 20.0,
+                **{f"rho_{name}": weight for name, weight in REWARD_WEIGHTS.items()},
                 "safe_time_headway": 1.0,  # Δt_safe [s]
                 # True: the target speed capped by what the vehicle ahead allows; False: the paper's constant one
                 "reference_speed_follows_traffic": False,

@@ -62,11 +62,8 @@ def traffic_following_speed(
     target_speed: float, vehicles: np.ndarray, ego_length: float, ego_width: float, deceleration: float, time_headway: float
 ) -> float:
     """
-    The target speed capped by the nearest vehicle ahead in the ego's corridor: the highest speed from which braking
-    at ``deceleration`` [m/s²] still closes on its speed before the gap shrinks to ``time_headway`` [s] of it,
-    ``v_lead + sqrt(2 b max(gap - v_lead Δt_safe, 0))``.
-
-    :param vehicles: the scene's vehicles, ego frame, ``[x, y, cos φ, sin φ, v, length, width]`` rows
+    The target speed capped by the nearest vehicle ahead in the ego's corridor (``vehicles``: the scene's) at
+    ``v_lead + sqrt(2 b max(gap - v_lead Δt_safe, 0))``: braking at b still closes on it at Δt_safe of its speed.
     """
     gap_long, _, ahead = vehicle_gaps(vehicles, ego_length, ego_width)
     if not ahead.any():

@@ -18,6 +18,11 @@ from highway_env.vehicle.kinematics import Vehicle
 from sb3_dacerf.envs.driving.common.observation import Scene, vehicle_gaps
 from sb3_dacerf.envs.driving.common.reference import nominal_steering
 
+REWARD_WEIGHTS = {
+    **dict(lat=1.5, long=3.0, heading=0.3, acc=1.0, steer=0.1, yaw=0.7, jerk=0.5, steer_rate=0.005),
+    **dict(step=1.0, front=10.0, side=0.0, space=2.0, rear=0.0, boundary=20.0),
+}
+"""The weights ρ of the terms (config keys ``rho_<name>``), the defaults of both scenarios."""
 REWARD_TERMS = tuple(
     "tracking_lateral tracking_speed tracking_heading control_acceleration control_steering comfort_yaw_rate "
     "comfort_jerk comfort_steering_rate liveness safe_front safe_space safe_side safe_rear boundary collision off_road "

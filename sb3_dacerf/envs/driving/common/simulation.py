@@ -27,11 +27,7 @@ Bound = tuple[bool | None, float, float, float, float, float, float]
 
 
 class _Remembering:
-    """
-    A lane that remembers the local coordinates of the last positions asked (a function of the position alone): in a
-    step, a vehicle's position is projected on the same lane by its controller, the neighbour search, the IDM gaps and
-    the closest-lane search. Mixed in before a highway-env lane class.
-    """
+    """A lane (mixed in before its class) remembering the local coordinates of the last positions asked."""
 
     _memory: dict[bytes, tuple[float, float]]
 
@@ -185,10 +181,8 @@ def _lateral_filter(lane: AbstractLane) -> Any:
 
 def _may_touch(vehicle: Any, other: Any, dt: float) -> bool:
     """Whether ``vehicle.handle_collisions(other, dt)`` may do anything: false where highway-env's own pre-check returns."""
-    if (
-        type(vehicle)._is_colliding is not RoadObject._is_colliding
-        or type(vehicle).handle_collisions is not RoadObject.handle_collisions
-    ):
+    methods = type(vehicle)._is_colliding, type(vehicle).handle_collisions
+    if methods != (RoadObject._is_colliding, RoadObject.handle_collisions):  # another check than highway-env's
         return True
     reach = (vehicle.diagonal + other.diagonal) / 2 + vehicle.speed * dt + _TOLERANCE
     position, other_position = vehicle.position, other.position
@@ -298,12 +292,7 @@ class FastRegulatedRoad(RegulatedRoad, FastRoad):
         points_2, headings_2, box_2 = self._prediction(v2, horizon, step)
         reach = v1.LENGTH + _TOLERANCE
         # Paths that never come within reach: highway-env's pre-check skips every time.
-        if (
-            box_2[0] - box_1[2] > reach
-            or box_1[0] - box_2[2] > reach
-            or box_2[1] - box_1[3] > reach
-            or box_1[1] - box_2[3] > reach
-        ):
+        if any(gap > reach for gap in (box_2[0] - box_1[2], box_1[0] - box_2[2], box_2[1] - box_1[3], box_1[1] - box_2[3])):
             return False
         count = min(len(points_1), len(points_2))
         gaps = points_2[:count] - points_1[:count]
