@@ -368,6 +368,6 @@ def fast_road(road: Road, road_class: type[Road] = FastRoad) -> Road:
     )
 
 
-def fast_vehicle_class(vehicle_class: type) -> type:
+def fast_vehicle_class(vehicle_class: Any) -> Any:
     """:return: :class:`FastIDMVehicle` for highway-env's ``IDMVehicle``, any other traffic class as it is"""
     return FastIDMVehicle if vehicle_class is IDMVehicle else vehicle_class
