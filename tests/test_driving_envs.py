@@ -2,7 +2,6 @@
 
 import json
 import os
-import pickle
 import subprocess
 import sys
 import warnings
@@ -303,20 +302,6 @@ def test_exploring_start_on_the_reference_path():
         gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 1.5})
 
 
-def test_env_pickled_by_an_earlier_version_steps_on():
-    """A training checkpoint's env from before config keys were added: they take their defaults."""
-    env = gym.make("DACERF-Intersection-v0")
-    env.reset(seed=0)
-    env.step(np.zeros(2, dtype=np.float32))
-    unwrapped = env.unwrapped
-    for key in ("dynamic_penalty_discount", "stall_timeout", "stall_distance", "reference_start_probability"):
-        del unwrapped.config[key]
-    del unwrapped._progress
-    restored = pickle.loads(pickle.dumps(env))
-    _, reward, *_ = restored.step(np.zeros(2, dtype=np.float32))
-    assert np.isfinite(reward) and restored.unwrapped.config["stall_timeout"] == 0.0
-
-
 def test_highway_success_at_time_limit():
     env, *_ = empty_highway(duration=1)
     for _ in range(10):
@@ -609,15 +594,6 @@ def test_drawn_densities_refuse_config_keys_they_set():
     assert len(env.unwrapped.road.vehicles) - 1 == 3
 
 
-def test_env_pickled_before_density_distributions_unpickles():
-    env = gym.make("DACERF-Multilane-v0", density="dense", config={"duration": 1}).unwrapped
-    state = env.__getstate__() if hasattr(env, "__getstate__") else dict(env.__dict__)
-    state = {key: value for key, value in state.items() if key != "density_weights"}
-    restored = type(env).__new__(type(env))
-    restored.__setstate__(state)
-    assert restored.density == "dense" and restored.density_weights == {"dense": 1.0}
-
-
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_ego_starts_near_its_reference_speed(env_id):
     # A start far from the target speed makes leaving the road (-200) cheaper than catching up at ±0.8 m/s²
@@ -792,6 +768,19 @@ def test_junction_driver_waits_for_the_oncoming_car_the_tracker_turns_into():
     crashed, arrived, steps = left_turn_against_oncoming_car(JunctionDriver, 65.0)
     assert not crashed and arrived
     assert steps > left_turn_against_oncoming_car(JunctionDriver, 0.0)[2]  # it waited for the car to pass
+
+
+def test_junction_driver_waits_at_the_stop_line_where_the_reference_speed_is_0():
+    from sb3_dacerf.envs.driving.scripted import JunctionDriver
+
+    env, unwrapped = lone_intersection("straight")
+    ego = unwrapped.vehicle
+    # its front 1 m before the line, standing, and crossing traffic to yield to: the yielding reference speed is 0
+    ego.position, ego.speed = np.array([ego.position[0], 11.0 + ego.LENGTH / 2 + 1.0]), 0.0
+    add_junction_vehicle(unwrapped, 1, 3, before_line=10.0, speed=8.0)
+    assert unwrapped.reference_speed_cap() == 0.0
+    action = JunctionDriver(env)(unwrapped.observation_type.observe())  # all waypoints at the ego's projection
+    assert action[0] <= 0.0
 
 
 def test_junction_driver_takes_only_the_intersection():

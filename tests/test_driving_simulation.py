@@ -5,6 +5,7 @@ closest lane, neighbours, conflict decisions, IDM decisions and collisions, and 
 
 import copy
 import pickle
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
+from sb3_dacerf.envs.driving.common import simulation
 from sb3_dacerf.envs.driving.common.simulation import (
     FastIDMVehicle,
     FastRegulatedRoad,
@@ -25,10 +27,27 @@ from sb3_dacerf.envs.driving.common.simulation import (
     IndexedRoadNetwork,
     predict_constant_speed,
 )
-from sb3_dacerf.envs.driving.intersection import FastFirstComeRoad, FirstComeRoad, IntersectionEnv
+from sb3_dacerf.envs.driving.intersection import FirstComeRoad, IntersectionEnv
 from sb3_dacerf.envs.driving.multilane import MultilaneEnv
 
 SCENARIOS = [MultilaneEnv, IntersectionEnv]
+
+
+class StockFirstComeRoad(RegulatedRoad):
+    """The intersection's first-come right of way on highway-env's own ``RegulatedRoad``."""
+
+    respect_priorities = staticmethod(FirstComeRoad.respect_priorities)
+
+
+def stock_road(road, road_class=FastRoad):
+    if road_class is FirstComeRoad:
+        return StockFirstComeRoad(road.network, np_random=road.np_random, record_history=road.record_history)
+    return road  # highway-env's Road or RegulatedRoad
+
+
+def highway_env_classes():
+    """Envs made and stepped inside run on highway-env's own road, lane network and IDM vehicle classes."""
+    return mock.patch.multiple(simulation, fast_road=stock_road, fast_vehicle_class=lambda vehicle_class: vehicle_class)
 
 
 def stepped(env_class, steps=40, seed=0, **config):
@@ -69,24 +88,27 @@ def assert_same_trace(a, b):
 
 
 @pytest.mark.parametrize("env_class", SCENARIOS)
-def test_fast_simulation_is_the_default_and_false_builds_highway_env_classes(env_class):
-    fast, stock = env_class(), env_class(config={"fast_simulation": False})
-    fast.reset(seed=0)
-    stock.reset(seed=0)
-    assert type(fast.road.network) is IndexedRoadNetwork and type(stock.road.network) is RoadNetwork
-    traffic = [v for v in fast.road.vehicles if v is not fast.vehicle]
-    assert traffic and all(type(v) is FastIDMVehicle for v in traffic)
-    assert all(type(v) is IDMVehicle for v in stock.road.vehicles if v is not stock.vehicle)
-    if env_class is IntersectionEnv:
-        assert type(fast.road) is FastFirstComeRoad and type(stock.road) is FirstComeRoad
-        priority = env_class(config={"right_of_way": "priority"})
-        priority.reset(seed=0)
-        assert type(priority.road) is FastRegulatedRoad
-        priority_stock = env_class(config={"right_of_way": "priority", "fast_simulation": False})
-        priority_stock.reset(seed=0)
-        assert type(priority_stock.road) is RegulatedRoad
-    else:
-        assert type(fast.road) is FastRoad and type(stock.road) is Road
+def test_the_envs_run_on_the_fast_classes(env_class):
+    for config, road_class in (
+        [({}, FastRoad)]
+        if env_class is MultilaneEnv
+        else [
+            ({}, FirstComeRoad),
+            ({"right_of_way": "priority"}, FastRegulatedRoad),
+        ]
+    ):
+        fast = env_class(config=config)
+        fast.reset(seed=0)
+        with highway_env_classes():
+            stock = env_class(config=config)
+            stock.reset(seed=0)
+        assert type(fast.road) is road_class and type(fast.road.network) is IndexedRoadNetwork
+        traffic = [v for v in fast.road.vehicles if v is not fast.vehicle]
+        assert traffic and all(type(v) is FastIDMVehicle for v in traffic)
+        # the reference of the comparisons below: highway-env's own classes
+        expected = {FastRoad: Road, FirstComeRoad: StockFirstComeRoad, FastRegulatedRoad: RegulatedRoad}[road_class]
+        assert type(stock.road) is expected and type(stock.road.network) is RoadNetwork
+        assert all(type(v) is IDMVehicle for v in stock.road.vehicles if v is not stock.vehicle)
 
 
 @pytest.mark.parametrize(
@@ -101,9 +123,9 @@ def test_fast_simulation_is_the_default_and_false_builds_highway_env_classes(env
 def test_same_episodes_as_highway_env_classes(env_class, config, steps):
     """Step for step the same observations, rewards, flags and vehicle counts, across resets."""
     for density in ("normal", "dense"):
-        fast = env_class(density=density, config={**config, "duration": 8, "fast_simulation": True})
-        stock = env_class(density=density, config={**config, "duration": 8, "fast_simulation": False})
-        fast_trace, stock_trace = run_episodes(fast, steps, seed=3), run_episodes(stock, steps, seed=3)
+        fast_trace = run_episodes(env_class(density=density, config={**config, "duration": 8}), steps, seed=3)
+        with highway_env_classes():
+            stock_trace = run_episodes(env_class(density=density, config={**config, "duration": 8}), steps, seed=3)
         assert_same_trace(fast_trace, stock_trace)
         # the traces cover episode ends, not only running traffic
         assert any(isinstance(step, tuple) and (step[2] or step[3]) for step in fast_trace)
@@ -272,8 +294,3 @@ def test_fast_env_pickles_and_steps_on_the_same(env_class):
         assert a[1:4] == b[1:4]
         if a[2] or a[3]:
             break
-
-
-def test_fast_simulation_must_be_a_bool():
-    with pytest.raises(ValueError, match=r"config\['fast_simulation'\] must be True or False, got 1"):
-        MultilaneEnv(config={"fast_simulation": 1})

@@ -1,22 +1,16 @@
-"""DeepMind Control suite tasks as Gymnasium environments with a flat ``float32`` observation.
-
-Every state-based task of ``dm_control.suite`` is registered as ``DMC-<domain>-<task>-v0``
-(dm_control's own domain and task names, e.g. ``DMC-humanoid-stand-v0``, ``DMC-ball_in_cup-catch-v0``),
-beside shimmy's ``dm_control/<domain>-<task>-v0`` ids, which keep a ``Dict`` observation of ``float64``.
-Importing this module registers the ids and imports no simulator: dm-control and shimmy are imported by ``gym.make``.
-An env made without a ``render_mode`` does not load an OpenGL backend (dm-control's GLFW, EGL or OSMesa): without a
-display, dm-control would otherwise try GLFW first and print its ``DISPLAY`` error. The backend is chosen, as
-dm-control chooses it, when the first env that renders is made.
-The two ``lqr`` tasks are left out: their actuators are unbounded (``±1e10``) and their episodes
-have no time limit, so they have no ``[-1, 1]`` action box nor 1000-step episode.
+"""
+DeepMind Control suite tasks as Gymnasium environments with a flat ``float32`` observation and a ``[-1, 1]`` action
+box: every state-based task of ``dm_control.suite`` is registered as ``DMC-<domain>-<task>-v0`` (dm-control's names,
+e.g. ``DMC-humanoid-stand-v0``), beside shimmy's ``dm_control/<domain>-<task>-v0`` ids (a ``Dict`` of ``float64``).
+Registration imports no simulator. An env made without a ``render_mode`` loads no OpenGL backend (without a display,
+dm-control's GLFW would print its ``DISPLAY`` error); the first env that renders loads the one dm-control would
+choose. The two ``lqr`` tasks are left out: their actuators are unbounded and their episodes have no time limit.
 """
 
-import contextlib
 import logging
 import os
 import re
 import sys
-from collections.abc import Iterator
 from types import ModuleType
 from typing import Any, SupportsFloat
 
@@ -25,65 +19,33 @@ import numpy as np
 from gymnasium import spaces
 
 # dm_control.suite.ALL_TASKS without ``lqr`` (tests/test_dmc.py checks it against the installed dm-control)
-DMC_TASKS: tuple[tuple[str, str], ...] = (
-    ("acrobot", "swingup"),
-    ("acrobot", "swingup_sparse"),
-    ("ball_in_cup", "catch"),
-    ("cartpole", "balance"),
-    ("cartpole", "balance_sparse"),
-    ("cartpole", "swingup"),
-    ("cartpole", "swingup_sparse"),
-    ("cartpole", "two_poles"),
-    ("cartpole", "three_poles"),
-    ("cheetah", "run"),
-    ("dog", "stand"),
-    ("dog", "walk"),
-    ("dog", "trot"),
-    ("dog", "run"),
-    ("dog", "fetch"),
-    ("finger", "spin"),
-    ("finger", "turn_easy"),
-    ("finger", "turn_hard"),
-    ("fish", "upright"),
-    ("fish", "swim"),
-    ("hopper", "stand"),
-    ("hopper", "hop"),
-    ("humanoid", "stand"),
-    ("humanoid", "walk"),
-    ("humanoid", "run"),
-    ("humanoid", "run_pure_state"),
-    ("humanoid_CMU", "stand"),
-    ("humanoid_CMU", "walk"),
-    ("humanoid_CMU", "run"),
-    ("manipulator", "bring_ball"),
-    ("manipulator", "bring_peg"),
-    ("manipulator", "insert_ball"),
-    ("manipulator", "insert_peg"),
-    ("pendulum", "swingup"),
-    ("point_mass", "easy"),
-    ("point_mass", "hard"),
-    ("quadruped", "walk"),
-    ("quadruped", "run"),
-    ("quadruped", "escape"),
-    ("quadruped", "fetch"),
-    ("reacher", "easy"),
-    ("reacher", "hard"),
-    ("stacker", "stack_2"),
-    ("stacker", "stack_4"),
-    ("swimmer", "swimmer6"),
-    ("swimmer", "swimmer15"),
-    ("walker", "stand"),
-    ("walker", "walk"),
-    ("walker", "run"),
-)
-
+_SUITE = {
+    "acrobot": "swingup swingup_sparse",
+    "ball_in_cup": "catch",
+    "cartpole": "balance balance_sparse swingup swingup_sparse two_poles three_poles",
+    "cheetah": "run",
+    "dog": "stand walk trot run fetch",
+    "finger": "spin turn_easy turn_hard",
+    "fish": "upright swim",
+    "hopper": "stand hop",
+    "humanoid": "stand walk run run_pure_state",
+    "humanoid_CMU": "stand walk run",
+    "manipulator": "bring_ball bring_peg insert_ball insert_peg",
+    "pendulum": "swingup",
+    "point_mass": "easy hard",
+    "quadruped": "walk run escape fetch",
+    "reacher": "easy hard",
+    "stacker": "stack_2 stack_4",
+    "swimmer": "swimmer6 swimmer15",
+    "walker": "stand walk run",
+}
+DMC_TASKS: tuple[tuple[str, str], ...] = tuple((domain, task) for domain, tasks in _SUITE.items() for task in tasks.split())
 DMC_ENV_IDS: tuple[str, ...] = tuple(f"DMC-{domain}-{task}-v0" for domain, task in DMC_TASKS)
-
-# Every registered task ends its episodes after 1000 control steps (time limit / control timestep)
 DMC_EPISODE_STEPS = 1000
-
-# Tasks whose reset uploads a new terrain to OpenGL (dm_control), so they need a GL backend even without rendering
+"""Every registered task's episodes end after 1000 control steps."""
+# Tasks whose reset uploads a new terrain to OpenGL, so they need a GL backend even without rendering
 _TASKS_NEEDING_GL = frozenset({("quadruped", "escape")})
+_renderer_deferred = False  # whether this module kept dm-control from loading a backend
 
 
 def _no_gl_error(what: str) -> RuntimeError:
@@ -93,87 +55,55 @@ def _no_gl_error(what: str) -> RuntimeError:
     )
 
 
-# dm-control's renderer name when none is loaded (``MUJOCO_GL=disable``), and whether it is this module that chose it
-_NO_RENDERER = "off"
-_renderer_deferred = False
-
-
 def _dm_control_suite(rendering: bool) -> ModuleType:
     """
-    ``dm_control.suite``, imported without loading an OpenGL backend unless ``rendering`` (or ``MUJOCO_GL``) asks for
-    one; once an env renders, the backend that dm-control would have chosen (``MUJOCO_GL``, else the first of GLFW,
-    EGL and OSMesa that loads) is loaded.
+    ``dm_control.suite``, imported without an OpenGL backend unless ``rendering`` (or ``MUJOCO_GL``) asks for one;
+    once an env renders, the backend dm-control would have chosen (``MUJOCO_GL``, else the first of GLFW, EGL and
+    OSMesa that loads) is loaded.
     """
     global _renderer_deferred
     import mujoco  # noqa: F401  (MuJoCo reads MUJOCO_GL for its own renderer when imported: before the change below)
 
     if not rendering and "MUJOCO_GL" not in os.environ and "dm_control._render" not in sys.modules:
-        os.environ["MUJOCO_GL"] = _NO_RENDERER  # dm-control reads it once, when it is first imported
+        os.environ["MUJOCO_GL"] = "off"  # dm-control's name for no renderer, read once, at its first import
         try:
-            import dm_control._render  # noqa: F401  (the import reads MUJOCO_GL)
+            import dm_control._render  # noqa: F401
         finally:
             del os.environ["MUJOCO_GL"]
         _renderer_deferred = True
     from dm_control import _render, suite
 
     if rendering and _renderer_deferred:
-        _load_renderer(_render)
+        wanted = os.environ.get("MUJOCO_GL")
+        for names, import_renderer in _render._ALL_RENDERERS:  # as dm-control's import does
+            if wanted is not None and wanted not in names:
+                continue
+            try:
+                _render.Renderer = import_renderer()
+            except ImportError:
+                continue
+            _render.BACKEND = names[0]
+            _render.USING_GPU = _render.BACKEND in _render.constants.EGL + _render.constants.GLFW
+            break
         _renderer_deferred = False
     return suite
 
 
-def _load_renderer(render: Any) -> None:
-    """Load the OpenGL backend into dm-control's ``_render`` module as its import does when ``MUJOCO_GL`` is unset then."""
-    wanted = os.environ.get("MUJOCO_GL")
-    for names, import_renderer in render._ALL_RENDERERS:
-        if wanted is not None and wanted not in names:
-            continue
-        try:
-            render.Renderer = import_renderer()
-        except ImportError:
-            continue
-        render.BACKEND = names[0]
-        render.USING_GPU = render.BACKEND in render.constants.EGL + render.constants.GLFW
-        return
-
-
-# MuJoCo's compiler warns about attributes of dm-control's own model files (cheetah's ``settotalmass``), which the
-# user of a task cannot change: dm-control passes MuJoCo's warnings to absl's logger
+# MuJoCo warns, through absl, of attributes of dm-control's own model files (cheetah's settotalmass): not the user's
 _MODEL_FILE_DEPRECATION = re.compile(r"compiler attribute '\w+' is deprecated")
 
 
-class _NoModelFileDeprecations(logging.Filter):
-    def filter(self, record: logging.LogRecord) -> bool:
-        return not _MODEL_FILE_DEPRECATION.search(record.getMessage())
-
-
-@contextlib.contextmanager
-def _quiet_model_compilation() -> Iterator[None]:
-    """Inside the block, MuJoCo's deprecation warnings about dm-control's model files are not logged."""
-    logger = logging.getLogger("absl")
-    no_deprecations = _NoModelFileDeprecations()
-    logger.addFilter(no_deprecations)
-    try:
-        yield
-    finally:
-        logger.removeFilter(no_deprecations)
+def _no_model_file_deprecation(record: logging.LogRecord) -> bool:
+    return not _MODEL_FILE_DEPRECATION.search(record.getMessage())
 
 
 class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarray]):
     """
-    A ``dm_control.suite`` task through shimmy, with the observation dict flattened to one ``float32``
-    vector (in the task's observation order) and the action box mapped to ``[-1, 1]``.
-
-    ``reset(seed=...)`` seeds the task's initial-state sampler, so equal seeds give equal episodes.
-    ``env.unwrapped`` is shimmy's ``DmControlCompatibilityV0`` (``env.unwrapped.physics`` is MuJoCo's state).
-
-    :param domain_name: dm_control domain, e.g. ``"humanoid"``
-    :param task_name: task of that domain, e.g. ``"stand"``
-    :param render_mode: ``"rgb_array"`` (needs a MuJoCo OpenGL backend: ``MUJOCO_GL=egl`` or ``osmesa``
-        when there is no display) or ``"human"`` (needs a display)
-    :param render_kwargs: passed to ``physics.render``, e.g. ``dict(height=240, width=320, camera_id=0)``
-    :param task_kwargs: passed to ``dm_control.suite.load`` (``random`` is set by ``reset(seed=...)``)
-    :param environment_kwargs: passed to ``dm_control.suite.load``
+    A ``dm_control.suite`` task (``domain_name``, ``task_name``) through shimmy, its observation dict flattened to one
+    ``float32`` vector (in the task's order) and its action box mapped to ``[-1, 1]``; ``reset(seed=...)`` seeds the
+    initial state; ``env.unwrapped`` is shimmy's ``DmControlCompatibilityV0``. ``render_mode="rgb_array"`` needs a
+    MuJoCo OpenGL backend (without a display, ``MUJOCO_GL=egl`` or ``osmesa``), ``"human"`` a display;
+    ``render_kwargs`` go to ``physics.render``, ``task_kwargs`` and ``environment_kwargs`` to ``dm_control.suite.load``.
     """
 
     metadata: dict[str, Any] = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012  (gymnasium.Env declares it without ClassVar)
@@ -191,8 +121,12 @@ class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarr
         suite = _dm_control_suite(rendering=render_mode is not None or needs_gl)
         from shimmy.dm_control_compatibility import DmControlCompatibilityV0
 
-        with _quiet_model_compilation():
+        absl = logging.getLogger("absl")
+        absl.addFilter(_no_model_file_deprecation)
+        try:
             dm_env = suite.load(domain_name, task_name, task_kwargs=task_kwargs, environment_kwargs=environment_kwargs)
+        finally:
+            absl.removeFilter(_no_model_file_deprecation)
         if needs_gl:
             try:
                 _ = dm_env.physics.contexts  # creating the GL context is what fails without a backend
@@ -201,12 +135,10 @@ class DMCEnv(gym.Wrapper[np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarr
                 raise _no_gl_error(f"{domain_name}-{task_name} needs OpenGL at every reset") from error
         super().__init__(DmControlCompatibilityV0(dm_env, render_mode=render_mode, render_kwargs=render_kwargs))
         self.metadata = {**self.metadata, "render_fps": round(1.0 / dm_env.control_timestep())}
-
         # Keys in the task's own order (shimmy's Dict space sorts them)
         self._obs_keys = tuple(dm_env.observation_spec().keys())
         n_obs = sum(int(np.prod(spec.shape)) for spec in dm_env.observation_spec().values())
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(n_obs,), dtype=np.float32)
-
         action_spec = dm_env.action_spec()
         self._action_low = np.asarray(action_spec.minimum, dtype=np.float64)
         self._action_scale = (np.asarray(action_spec.maximum, dtype=np.float64) - self._action_low) / 2.0

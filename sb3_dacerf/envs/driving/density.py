@@ -1,16 +1,7 @@
 """
-Traffic densities of the driving scenarios, and the distributions an env draws one from at every reset.
-
-``gym.make(env_id, density=...)`` takes:
-
-- one density, ``"sparse"``, ``"normal"`` or ``"dense"``: every episode has it;
-- ``"random"``: each episode draws one of the three, with equal probabilities;
-- a list of densities, e.g. ``["sparse", "normal"]``: each episode draws one of them, with equal probabilities;
-- a dict of weights, e.g. ``{"sparse": 1, "normal": 2, "dense": 1}``: each episode draws one with probability
-  proportional to its weight (densities left out, or with weight 0, are never drawn).
-
-The draw comes from the env's random generator, so ``reset(seed=s)`` gives the same density (and the same episode)
-every time. This module imports no simulator, so command-line tools can check a density before making an env.
+Traffic densities of the driving scenarios: ``gym.make(env_id, density=...)`` takes ``"sparse"``, ``"normal"`` or
+``"dense"``, or a distribution each reset draws the episode's density from with the env's generator: ``"random"``,
+a list of densities (drawn alike) or a dict of weights, e.g. ``{"sparse": 1, "normal": 2}``. Imports no simulator.
 """
 
 from __future__ import annotations
@@ -34,15 +25,8 @@ _FORMS = (
 
 def density_weights(density: object) -> dict[str, float]:
     """
-    The probability of each density an env with ``gym.make(..., density=density)`` draws, checked.
-
-    :param density: a density, ``"random"``, a list of densities or a dict ``{density: weight}`` of weights >= 0
-        with a positive sum
-    :return: ``{density: probability}`` of the densities that can be drawn (probabilities > 0 that sum to 1), in the
-        order of :data:`DENSITIES`
-    :raises ValueError: an unknown density, a density listed twice, an empty list, or weights that are negative, not
-        finite or all zero, naming the value given and what is accepted
-    :raises TypeError: a value of another type
+    :return: ``{density: probability}`` of the densities a ``density`` spec draws, in the order of :data:`DENSITIES`
+    :raises ValueError: an unknown or repeated density, an empty list, weights negative, not finite or all 0
     """
     if isinstance(density, str):
         if density == "random":

@@ -1,37 +1,12 @@
 """
-Urban intersection of the paper (``DACERF-Intersection-v0``), on highway-env's ``IntersectionEnv``.
-
-A four-way crossroads (one lane each way, 4 m lanes, 22 m × 22 m junction box) with oncoming and crossing traffic
-spawned on every arm. Among traffic vehicles the horizontal road has priority (highway-env's IDM traffic and lane
-priorities); between the ego and a traffic vehicle about to conflict, the one ahead goes first and the other yields
-(``right_of_way="first_come"``, the default: traffic brakes for an ego already crossing, as drivers do; with
-``"priority"``, highway-env's rule, crossing traffic never yields to the ego on its minor arm). The ego approaches
-from the south arm and follows a route drawn among ``routes`` (default straight, left and right; ``"u_turn"`` can
-be added): the reference path is the centre line of the approach lane, the turning lane of highway-env's road
-network and the exit lane; the U-turn, which the single-lane network lacks, is a keyhole loop through the junction
-box (radius 8.5 m arcs, just above the ego's minimum turning radius of 8.1 m at δ = 0.571 rad), which the paper's
-steering rate of 0.25 rad/s makes nearly undrivable (the reason it is not drawn by default). The road area is the
-two 8 m wide roads plus the whole junction box (the solid lines highway-env draws along the right-turn lanes at
-the corners are markings; the U-turn crosses them).
-Target speed from ``reference_speed_ranges`` of the route (straight 6-9 m/s, left 4-7, right 3-5,
-U-turn 3-4.5: the steering rate is limited to 0.25 rad/s); random start 20-40 m before the junction
-with small lateral and heading offsets (for training, ``reference_start_probability`` starts a share of the episodes
-on the path anywhere up to 15 m into the exit lane, as the paper's ego drawn from the traffic flow). ``density`` sets
-the initial vehicle count and the spawn probability per step (sparse 5 / 0.03, normal 10 / 0.06 = highway-env's
-default rate of 0.6 per second, dense 15 / 0.12).
-
-Reward: the paper's terms (:mod:`.common.reward`) with two choices where the paper leaves room. The severe-event
-penalty is the paper's constant 200 (Markov: it does not depend on the time left, which the observation lacks), and
-with ``yield_at_junction`` (default) the reference speed yields at the stop line to traffic whose crossing overlaps
-the ego's (:meth:`IntersectionEnv.reference_speed_cap`), so that the order of values is: crossing safely, then waiting
-for a gap (nearly free), then a crash (-200), then standing without a reason (the target speed's tracking cost, 6-24
-per step, about -600 to -950 discounted at γ = 0.99). The yielding speed is in the observation through the waypoint
-spacing.
-
-The episode ends on a collision, when the ego's centre leaves the road, or when it has driven
-25 m into any exit lane (``info["is_success"]`` is true only for the route's exit); it is truncated
-after ``duration`` (40 s). Observation scaling: positions / 25 m, speeds / 10 m/s. ``info["route"]`` names the
-episode's route.
+Urban intersection of the paper (``DACERF-Intersection-v0``), on highway-env's ``IntersectionEnv``: a four-way
+crossroads (one 4 m lane each way, 22 m junction box) with IDM traffic on every arm, the horizontal road having
+priority. The ego starts 20-40 m before the junction on the south arm and follows a route drawn among ``routes``
+(highway-env's lanes; the U-turn, not drawn by default, is a keyhole loop through the junction box) at a target speed
+drawn from ``reference_speed_ranges``. Between the ego and traffic, ``right_of_way`` ``"first_come"`` lets the one
+ahead go first; with ``yield_at_junction`` the reference speed yields at the stop line to crossing traffic
+(:meth:`IntersectionEnv.reference_speed_cap`). The severe-event penalty is the paper's constant 200. The episode ends
+on a collision, off the road, or 25 m into an exit lane (a success at the route's exit), and is truncated after 40 s.
 """
 
 from __future__ import annotations
@@ -45,40 +20,27 @@ from highway_env.road.regulation import RegulatedRoad
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
+from sb3_dacerf.envs.driving.common import simulation
+from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.config import Rule, boolean, choice, interval, number
-from sb3_dacerf.envs.driving.common.reference import nominal_steering
-from sb3_dacerf.envs.driving.common.simulation import (
-    FastRegulatedRoad,
-    FastRoad,
-    IndexedRoadNetwork,
-    SharedPredictions,
-    fast_vehicle_class,
-)
+from sb3_dacerf.envs.driving.common.reference import ReferencePath, nominal_steering
+from sb3_dacerf.envs.driving.common.simulation import FastRegulatedRoad
 
-ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}
-"""Route name -> index of the exit arm (the ego enters from arm 0; highway-env numbers arms anticlockwise)."""
-DEFAULT_ROUTES = ["straight", "left", "right"]
-"""The routes drawn by default: the U-turn is selectable (``routes``) but not drivable at the paper's steering rate."""
+ROUTES = {"straight": 2, "left": 1, "right": 3, "u_turn": 0}  #: route -> exit arm (the ego enters from arm 0)
+DEFAULT_ROUTES = ["straight", "left", "right"]  #: the U-turn is hardly drivable at the paper's steering rate
 RIGHT_OF_WAY = ("first_come", "priority")
 
 LANE_WIDTH = AbstractLane.DEFAULT_WIDTH
-JUNCTION_HALF_SIZE = LANE_WIDTH + 5 + LANE_WIDTH / 2
-"""Half side of the junction box [m], highway-env's ``outer_distance``."""
-U_TURN_RADIUS = 8.5
-"""Radius of the U-turn arcs [m]."""
+JUNCTION_HALF_SIZE = LANE_WIDTH + 5 + LANE_WIDTH / 2  #: [m] highway-env's ``outer_distance``
+U_TURN_RADIUS = 8.5  #: [m] of the U-turn's arcs
 
 
 def u_turn_points(start: np.ndarray, heading: float, turn_sign: float, step: float) -> tuple[np.ndarray, np.ndarray]:
     """
-    Sample a keyhole U-turn: a swing away by θ, a loop of π + 2θ towards the turn side, a swing back by θ,
-    all of radius ``U_TURN_RADIUS``, ending one lane width to the turn side, heading the opposite way.
+    A keyhole U-turn of arcs of radius ``U_TURN_RADIUS``: a swing away by θ, a loop of π + 2θ towards the turn side
+    (``turn_sign``: that of a left turn's heading change), a swing back by θ, ending one lane width to the side.
 
-    :param start: start position [m]
-    :param heading: start heading [rad]
-    :param turn_sign: +1 or -1, the sign of the heading change of a left turn
-    :param step: sampling interval [m]
-    :return: positions (N, 2) and headings (N,), the last ones at the end of the loop
+    :return: positions (N, 2) and headings (N,) every ``step`` metres from ``start``, and at the end of the loop
     """
     theta = np.arccos((U_TURN_RADIUS + LANE_WIDTH / 2) / (2 * U_TURN_RADIUS))
     curvature = turn_sign / U_TURN_RADIUS
@@ -87,27 +49,17 @@ def u_turn_points(start: np.ndarray, heading: float, turn_sign: float, step: flo
     position, psi = np.asarray(start, dtype=np.float64), heading
     for kappa, angle in pieces:
         length = angle * U_TURN_RADIUS
-        s = np.arange(0.0, length, step)
-        # Exact arc of constant curvature from (position, psi).
-        points.append(
-            position + np.column_stack([np.sin(psi + kappa * s) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * s)]) / kappa
-        )
-        headings.append(psi + kappa * s)
-        position = (
-            position + np.array([np.sin(psi + kappa * length) - np.sin(psi), np.cos(psi) - np.cos(psi + kappa * length)]) / kappa
-        )
-        psi = psi + kappa * length
+        along, end = psi + kappa * np.arange(0.0, length, step), psi + kappa * length
+        points.append(position + np.column_stack([np.sin(along) - np.sin(psi), np.cos(psi) - np.cos(along)]) / kappa)
+        headings.append(along)
+        position, psi = position + np.array([np.sin(end) - np.sin(psi), np.cos(psi) - np.cos(end)]) / kappa, end
     return np.concatenate([*points, [position]]), np.concatenate([*headings, [psi]])
 
 
 def travel_time(distance: np.ndarray, speed: float, acceleration: float, max_speed: float) -> np.ndarray:
     """
-    Time [s] to cover ``distance`` [m] from ``speed``, accelerating at ``acceleration`` up to ``max_speed`` [m/s].
-
-    :param distance: distances (negative ones count as 0)
-    :param speed: initial speed, >= 0
-    :param acceleration: > 0
-    :param max_speed: the speed kept once reached (the initial speed if it is higher)
+    :return: the time [s] to cover ``distance`` [m] (negative: 0) from ``speed`` >= 0, accelerating at ``acceleration``
+        > 0 up to ``max_speed`` [m/s] (the initial speed if it is higher)
     """
     distance = np.maximum(np.asarray(distance, dtype=np.float64), 0.0)
     max_speed = max(max_speed, speed, 1e-6)
@@ -119,17 +71,11 @@ def travel_time(distance: np.ndarray, speed: float, acceleration: float, max_spe
 
 def turn_conflicts(network, ego_exit: int, conflict_distance: float = 3.1, step: float = 0.5) -> dict:
     """
-    Where the ego's turn from arm 0 to ``ego_exit`` meets each traffic turn of the junction, on their centre lines.
+    Where the ego's turn from arm 0 to ``ego_exit`` meets each traffic turn, on their centre lines (each the turn lane
+    and the first 10 m of its exit lane, sampled every ``step`` m) within ``conflict_distance`` [m] of each other.
 
-    Each path is the turn lane ``ir{a} -> il{b}`` and the first 10 m of its exit lane (so that two turns into the same
-    exit meet where they merge), sampled every ``step`` metres.
-
-    :param network: the junction's road network (highway-env's ``IntersectionEnv``)
-    :param ego_exit: the arm the ego leaves by (1, 2 or 3)
-    :param conflict_distance: centre-line distance counted as a conflict [m]
-    :param step: sampling interval [m]
-    :return: ``{(a, b): (ego_in, ego_out, traffic_in, traffic_out)}``: for each traffic turn from arm ``a`` (not 0)
-        to arm ``b`` that conflicts, the arc lengths [m] from each turn lane's start where the conflict begins and ends
+    :return: ``{(a, b): (ego_in, ego_out, traffic_in, traffic_out)}``: for each traffic turn from arm ``a`` (not 0) to
+        arm ``b`` that conflicts, the arc lengths [m] from each turn lane's start where the conflict begins and ends
     """
 
     def path(entry: int, exit_: int) -> np.ndarray:
@@ -140,19 +86,13 @@ def turn_conflicts(network, ego_exit: int, conflict_distance: float = 3.1, step:
     ego = path(0, ego_exit)
     conflicts = {}
     for entry in (1, 2, 3):
-        for exit_ in range(4):
-            if exit_ == entry:
-                continue
+        for exit_ in [arm for arm in range(4) if arm != entry]:
             other = path(entry, exit_)
             close = np.linalg.norm(ego[:, None] - other[None], axis=-1) < conflict_distance
             ego_index, other_index = np.nonzero(close)
             if len(ego_index):
-                conflicts[entry, exit_] = (
-                    step * ego_index.min(),
-                    step * ego_index.max(),
-                    step * other_index.min(),
-                    step * other_index.max(),
-                )
+                ego_in, ego_out, traffic_in, traffic_out = ego_index.min(), ego_index.max(), other_index.min(), other_index.max()
+                conflicts[entry, exit_] = (step * ego_in, step * ego_out, step * traffic_in, step * traffic_out)
     return conflicts
 
 
@@ -169,12 +109,8 @@ def _speed_ranges_rule(value: object) -> str | None:
     return f"a dict of route -> [low, high] target speeds [m/s] within [0, 40], routes among {list(ROUTES)}"
 
 
-class FirstComeRoad(RegulatedRoad):
-    """
-    highway-env's regulated junction road, except that a conflict between the ego and a traffic vehicle goes to
-    whichever is ahead: the one behind yields (in practice the traffic vehicle, which brakes to a stop; the ego is
-    the agent's to drive). Conflicts between traffic vehicles follow highway-env's lane priorities, as before.
-    """
+class FirstComeRoad(FastRegulatedRoad):
+    """The junction road on which a conflict between the ego and traffic goes to the one ahead (traffic: by priority)."""
 
     @staticmethod
     def respect_priorities(v1: Vehicle, v2: Vehicle) -> Vehicle:
@@ -183,19 +119,8 @@ class FirstComeRoad(RegulatedRoad):
         return v1 if v1.front_distance_to(v2) > v2.front_distance_to(v1) else v2
 
 
-class FastFirstComeRoad(SharedPredictions, FirstComeRoad, FastRoad):
-    """:class:`FirstComeRoad` on the faster classes of :mod:`.simulation`, with the same answers."""
-
-
 class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
-    """
-    Urban intersection with straight, left, right and U-turn routes; see the module docstring.
-
-    :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
-    :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``, or ``"random"``, a list or a
-        dict of weights to draw one per episode (:mod:`sb3_dacerf.envs.driving.density`)
-    """
+    """The urban intersection (see the module docstring); takes :class:`PaperDrivingMixin`'s arguments."""
 
     road: RegulatedRoad
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
@@ -205,21 +130,16 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     }
     CONFIG_RULES: ClassVar[dict[str, Rule]] = {
         "initial_vehicle_count": number(0, integer=True),
-        "spawn_probability": number(0.0, 1.0),
+        **dict.fromkeys(["spawn_probability", "reference_start_probability"], number(0.0, 1.0)),
+        **dict.fromkeys(["clear_crashed_traffic", "yield_at_junction"], boolean()),
         "routes": _routes_rule,
         "reference_speed_ranges": _speed_ranges_rule,
-        "clear_crashed_traffic": boolean(),
-        "reference_start_probability": number(0.0, 1.0),
         "right_of_way": choice(RIGHT_OF_WAY),
-        "yield_at_junction": boolean(),
     }
     TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset({"reference_start_probability"})
-    YIELD_DECELERATION = 0.5
-    """Deceleration [m/s²] of the yielding reference's stop at the line (the ego can brake at 0.8)."""
-    YIELD_MARGIN = 1.0
-    """Widening [s] of a traffic vehicle's time window at a conflict (``reference_speed_cap``)."""
-    EXIT_DISTANCE = 25.0
-    """Distance driven into an exit lane that ends the episode [m] (highway-env's ``has_arrived``)."""
+    YIELD_DECELERATION = 0.5  #: [m/s²] of the yielding reference's stop at the line
+    YIELD_MARGIN = 1.0  #: [s] widening of a traffic vehicle's time window at a conflict
+    EXIT_DISTANCE = 25.0  #: [m] driven into an exit lane that ends the episode
 
     @classmethod
     def default_config(cls) -> dict:
@@ -234,24 +154,12 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 "reference_speed_ranges": {"straight": [6.0, 9.0], "left": [4.0, 7.0], "right": [3.0, 5.0], "u_turn": [3.0, 4.5]},
                 "position_scale": 25.0,
                 "speed_scale": 10.0,
-                # Remove traffic vehicles that crashed into each other (highway-env's junction behaviour fails now
-                # and then) instead of leaving the wrecks in the junction; False: highway-env's behaviour.
-                "clear_crashed_traffic": True,
-                # Who goes first when the ego and a traffic vehicle are about to conflict: "first_come", the one
-                # ahead (traffic behind the ego yields to it); "priority", highway-env's lane priorities (the
-                # horizontal road first: crossing traffic never yields to the ego, which comes from a minor arm).
-                "right_of_way": "first_come",
-                # The reference speed yields at the stop line to junction traffic whose crossing overlaps the ego's
-                # (reference_speed_cap): waiting for a gap costs nothing, standing without a reason costs the target
-                # speed's tracking term. False: the route's target speed throughout (the paper's reference).
-                "yield_at_junction": True,
-                # The paper's constant severe-event penalty: Markov, and with the yielding reference, a crash costs
-                # more than waiting for a gap while standing without a reason costs more than both
-                "collision_penalty": 200.0,
-                # Training aid (starts from the traffic flow), 0 for evaluation: the probability that an episode
-                # starts on the reference path anywhere from 20 m before the junction to 10 m before the exit distance
-                # (inside and past the junction too), heading along the path with the steering of its curvature,
-                # instead of 20-40 m before the junction.
+                "clear_crashed_traffic": True,  # remove the wrecks of traffic-only crashes
+                "right_of_way": "first_come",  # between the ego and traffic: the one ahead goes first; or "priority"
+                "yield_at_junction": True,  # the reference speed yields at the stop line; False: the paper's reference
+                "collision_penalty": 200.0,  # the paper's constant severe-event penalty
+                # Training only: the probability of an episode starting on the reference path (with the steering of
+                # its curvature) from 20 m before the junction to 10 m before the exit distance
                 "reference_start_probability": 0.0,
             }
         )
@@ -259,34 +167,15 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
 
     def configure(self, config: dict | None) -> None:
         super().configure(config)
-        routes = self.config["routes"]
-        if isinstance(routes, str) or not routes or any(route not in ROUTES for route in routes):
-            raise ValueError(f"routes must be a non-empty list of {list(ROUTES)}, got {routes!r}")
-        missing = set(routes) - set(self.config["reference_speed_ranges"])
+        missing = set(self.config["routes"]) - set(self.config["reference_speed_ranges"])
         if missing:
             raise ValueError(f"reference_speed_ranges lacks the route(s) {sorted(missing)} (overrides replace the whole dict)")
 
     def _make_road(self) -> None:
-        """
-        highway-env's junction, on a :class:`FirstComeRoad` if ``right_of_way`` is ``"first_come"``, and on the
-        faster classes of :mod:`.simulation` (:class:`FastFirstComeRoad`, ``FastRegulatedRoad``) if
-        ``fast_simulation``.
-        """
+        """highway-env's junction, on a :class:`FirstComeRoad` (``right_of_way="first_come"``) or a ``FastRegulatedRoad``."""
         super()._make_road()
-        first_come, fast = self.config["right_of_way"] == "first_come", self.config["fast_simulation"]
-        if first_come or fast:
-            road = self.road
-            road_class = {
-                (True, True): FastFirstComeRoad,
-                (True, False): FirstComeRoad,
-                (False, True): FastRegulatedRoad,
-            }[first_come, fast]
-            self.road = road_class(
-                network=IndexedRoadNetwork.from_network(road.network) if fast else road.network,
-                np_random=road.np_random,
-                record_history=road.record_history,
-                neighbour_vehicles_connected_lanes=road.neighbour_vehicles_connected_lanes,
-            )
+        first_come = self.config["right_of_way"] == "first_come"
+        self.road = simulation.fast_road(self.road, FirstComeRoad if first_come else FastRegulatedRoad)
 
     def _make_vehicles(self, n_vehicles: int = 10) -> None:
         """Spawn and warm up the traffic as highway-env does, then create the ego, its route and reference."""
@@ -311,18 +200,15 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         if self.route == "u_turn":
             left = network.get_lane(("ir0", "il1", 0))
             turn_sign = np.sign(left.heading_at(left.length) - left.heading_at(0.0))
-            # Starting the loop 1 m before the junction keeps the ego body 0.9 m or more from the road edges.
-            loop_start = approach.length - 1.0
-            loop_points, loop_headings = u_turn_points(
-                approach.position(loop_start, 0.0), approach.heading_at(loop_start), turn_sign, step
+            # The loop from 1 m before the junction keeps the ego body 0.9 m or more from the road edges.
+            loop = approach.length - 1.0
+            points, headings = u_turn_points(approach.position(loop, 0.0), approach.heading_at(loop), turn_sign, step)
+            head = ReferencePath.from_lanes([(approach, 0.0, loop)], step)
+            tail = ReferencePath.from_lanes(
+                [(exit_lane, exit_lane.local_coordinates(points[-1])[0] + step, exit_lane.length)], step
             )
-            head = ReferencePath.from_lanes([(approach, 0.0, loop_start)], step)
-            tail_start = exit_lane.local_coordinates(loop_points[-1])[0] + step
-            tail = ReferencePath.from_lanes([(exit_lane, tail_start, exit_lane.length)], step)
-            self.reference = ReferencePath(
-                np.concatenate([head.points[:-1], loop_points, tail.points]),
-                np.concatenate([head.headings[:-1], loop_headings, tail.headings]),
-            )
+            points = np.concatenate([head.points[:-1], points, tail.points])
+            self.reference = ReferencePath(points, np.concatenate([head.headings[:-1], headings, tail.headings]))
         else:
             turn = network.get_lane(("ir0", f"il{exit_arm}", 0))
             self.reference = ReferencePath.from_lanes(
@@ -331,8 +217,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         position, heading = approach.position(start, lateral), approach.heading_at(start) + heading_offset
         steering = 0.0
         if config["reference_start_probability"] > 0 and rng.uniform() < config["reference_start_probability"]:
-            # Start from the traffic flow: anywhere from 20 m before the junction to 10 m before the exit distance,
-            # on the reference path with the path's heading and the steering that follows its curvature.
+            # Start on the path, with its heading and the steering of its curvature
             end = self.reference.project(exit_lane.position(self.EXIT_DISTANCE - 10.0, 0.0))[0]
             points, headings, curvatures = self.reference.at(np.array([rng.uniform(approach.length - 20.0, end)]))
             normal = np.array([-np.sin(headings[0]), np.cos(headings[0])])
@@ -343,20 +228,15 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         ego.action["steering"] = steering  # define_spaces() starts the steering command there
         self.controlled_vehicles = [ego]
         self.road.vehicles.append(ego)
-        # Prevent collisions at the start, as highway-env does.
+        # no collision at the start, as in highway-env
         self.road.vehicles = [v for v in self.road.vehicles if v is ego or np.linalg.norm(v.position - ego.position) >= 20]
 
     def reference_speed_cap(self) -> float:
         """
-        The speed [m/s] from which the ego stops at the stop line, braking at ``YIELD_DECELERATION``, while it must
-        yield; ``inf`` otherwise (``yield_at_junction`` off, a U-turn, an ego already in the junction or one that can no
-        longer stop before it).
-
-        The ego must yield when the time window in which a traffic vehicle occupies a conflict of their paths
-        (:func:`turn_conflicts`) overlaps the ego's own at that conflict. The traffic vehicle is predicted along its
-        planned route: it arrives no earlier than accelerating at 3 m/s² up to 9 m/s and leaves no later than at
-        2 m/s, each widened by ``YIELD_MARGIN``; the ego arrives accelerating at 0.7 m/s² from its speed up to its
-        target speed, and its body occupies 3 m before and after the conflict.
+        While the ego must yield, the speed [m/s] from which braking at ``YIELD_DECELERATION`` stops it at the stop
+        line (``inf`` otherwise): when a traffic vehicle's time window at a conflict of their paths (along its route,
+        arriving no earlier than at 3 m/s² up to 9 m/s, leaving no later than at 2 m/s, widened by ``YIELD_MARGIN``)
+        overlaps the ego's (at 0.7 m/s² up to its target speed, its body 3 m before and after the conflict).
         """
         if not self.config["yield_at_junction"] or self.route == "u_turn":
             return np.inf
@@ -367,7 +247,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             return np.inf  # in the junction, or committed to it
         conflicts = self._conflicts[ROUTES[self.route]]
         to_turn = float(ego.position[1]) - JUNCTION_HALF_SIZE  # from the ego's centre to the start of its turn lane
-        # The ego's time window at each conflict, for all of them at once
+        # the ego's time window at each conflict
         stretches = np.array([(ego_in, ego_out) for ego_in, ego_out, _, _ in conflicts.values()]).reshape(-1, 2)
         padding = np.array([-ego.LENGTH / 2 - 3.0, ego.LENGTH / 2 + 3.0])
         times = travel_time(to_turn + stretches + padding, ego.speed, 0.7, self.reference_speed)
@@ -377,10 +257,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 continue
             lane_index = vehicle.lane_index
             turn = next((lane for lane in (lane_index, *(vehicle.route or ())) if lane[0].startswith("ir")), None)
-            if turn is None:
-                continue
-            pair = (int(turn[0][2:]), int(turn[1][2:]))
-            if pair not in conflicts:
+            if turn is None or (pair := (int(turn[0][2:]), int(turn[1][2:]))) not in conflicts:
                 continue
             _, _, traffic_in, traffic_out = conflicts[pair]
             s = vehicle.lane.local_coordinates(vehicle.position)[0]
@@ -402,10 +279,8 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     def _spawn_vehicle(self, longitudinal: float = 0, *args, **kwargs):
         """highway-env's spawner, with its IDM settings for junctions set per vehicle instead of on the class."""
         vehicle = super()._spawn_vehicle(longitudinal, *args, **kwargs)
-        if vehicle is not None and self.config["fast_simulation"]:
-            # The same vehicle, deciding through the faster methods of .simulation (no state of its own to add)
-            vehicle.__class__ = fast_vehicle_class(type(vehicle))
         if vehicle is not None:
+            vehicle.__class__ = simulation.fast_vehicle_class(type(vehicle))  # the same state, faster decisions
             # highway-env's intersection-v0 sets these on the IDMVehicle class, which leaks into every other env.
             vehicle.DISTANCE_WANTED, vehicle.COMFORT_ACC_MAX, vehicle.COMFORT_ACC_MIN = 7.0, 6.0, -3.0
         return vehicle

@@ -1,18 +1,9 @@
 """
-Multi-lane highway of the paper (``DACERF-Multilane-v0``), on highway-env's ``HighwayEnv``.
-
-High-speed continuous driving on a straight road of ``lanes_count`` (3) lanes with IDM / MOBIL traffic
-that changes lanes and cuts in. The reference path is the centre line of the ego's current lane or of
-an adjacent one (a lane change to merge into), with a target speed drawn from ``reference_speed_range``;
-the ego starts at about that speed (± 0.5 m/s) with small random lateral and heading offsets. Only the
-stretch ``traffic_window`` around the ego (default 80 m behind to 120 m ahead) is simulated: vehicles leaving
-it are removed and new ones enter at the other end, so the vehicle count stays at ``vehicles_count``
-(``density``: sparse 6, normal 12, dense 20) and the simulation cost does not grow with the road length.
-As in highway-env's ``highway-fast-v0``, only the ego's collisions are checked.
-
-An episode is truncated after ``duration`` (30 s, 300 steps) and ends early on a collision or when the
-ego's centre leaves the carriageway; ``info["is_success"]`` is true when it reaches the time limit
-safely. Observation scaling: positions / 50 m, speeds / 30 m/s (see ``sb3_dacerf.envs.driving.common``).
+Multi-lane highway of the paper (``DACERF-Multilane-v0``), on highway-env's ``HighwayEnv``: ``lanes_count`` lanes of
+IDM / MOBIL traffic that changes lanes and cuts in (only the ego's collisions are checked). The reference is the
+centre line of the ego's lane or of an adjacent one, at a target speed drawn from ``reference_speed_range``. Only
+``traffic_window`` around the ego is simulated: vehicles leaving it re-enter at the other end, keeping
+``vehicles_count``. The episode ends on a collision or off the road, and is truncated (a success) after ``duration``.
 """
 
 from __future__ import annotations
@@ -26,22 +17,16 @@ from highway_env.road.lane import AbstractLane
 from highway_env.road.road import LaneIndex, Road
 from highway_env.vehicle.kinematics import Vehicle
 
-from sb3_dacerf.envs.driving.common import PaperDrivingMixin, ReferencePath
+from sb3_dacerf.envs.driving.common import simulation
+from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.config import Rule, choice, interval, number
-from sb3_dacerf.envs.driving.common.simulation import FastRoad, IndexedRoadNetwork, fast_vehicle_class
+from sb3_dacerf.envs.driving.common.reference import ReferencePath
 
 REFERENCE_LANES = ("random", "current", "left", "right")
 
 
 class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
-    """
-    Multi-lane highway with lane changes and merging into traffic; see the module docstring.
-
-    :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
-    :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``, or ``"random"``, a list or a
-        dict of weights to draw one per episode (:mod:`sb3_dacerf.envs.driving.density`)
-    """
+    """The multi-lane highway (see the module docstring); takes :class:`PaperDrivingMixin`'s arguments."""
 
     road: Road
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
@@ -57,10 +42,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         "reference_speed_range": interval(0.0, Vehicle.MAX_SPEED),
         "reference_lane": choice(REFERENCE_LANES),
     }
-    TRAFFIC_GAP = 15.0
-    """Minimum distance between the centres of two vehicles placed in the same lane [m]."""
-    EGO_CLEARANCE = (-20.0, 30.0)
-    """Free stretch [m] behind and ahead of the ego in its own lane where no vehicle is placed."""
+    TRAFFIC_GAP = 15.0  #: [m] at least between the centres of two vehicles placed in the same lane
+    EGO_CLEARANCE = (-20.0, 30.0)  #: [m] behind and ahead of the ego in its lane where no vehicle is placed
 
     @classmethod
     def default_config(cls) -> dict:
@@ -79,24 +62,13 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
 
     def configure(self, config: dict | None) -> None:
         super().configure(config)
-        if self.config["reference_lane"] not in REFERENCE_LANES:
-            raise ValueError(f"Unknown reference_lane {self.config['reference_lane']!r}: expected one of {REFERENCE_LANES}")
         if self.config["lanes_count"] < 2 and self.config["reference_lane"] in ("left", "right"):
             raise ValueError("reference_lane 'left' / 'right' needs lanes_count >= 2")
-        if self.config["lanes_count"] < 1:
-            raise ValueError(f"lanes_count must be >= 1, got {self.config['lanes_count']}")
 
     def _create_road(self) -> None:
-        """highway-env's straight multi-lane road, on the faster classes of :mod:`.simulation` if ``fast_simulation``."""
+        """highway-env's straight multi-lane road, on the faster classes of :mod:`.simulation`."""
         super()._create_road()
-        if self.config["fast_simulation"]:
-            road = self.road
-            self.road = FastRoad(
-                network=IndexedRoadNetwork.from_network(road.network),
-                np_random=road.np_random,
-                record_history=road.record_history,
-                neighbour_vehicles_connected_lanes=road.neighbour_vehicles_connected_lanes,
-            )
+        self.road = simulation.fast_road(self.road)
 
     def _create_vehicles(self) -> None:
         """Create the ego near its reference speed, its reference lane, and the traffic around it."""
@@ -110,12 +82,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         ego_lane = network.get_lane(("0", "1", ego_lane_id))
         x0 = 20.0 - config["traffic_window"][0]
         self.reference_speed = float(rng.uniform(*config["reference_speed_range"]))
-        ego = self.action_type.vehicle_class(
-            self.road,
-            ego_lane.position(x0, rng.normal(0.0, 0.2)),
-            heading=ego_lane.heading_at(x0) + rng.normal(0.0, 0.01),
-            speed=self._start_speed(),
-        )
+        position, heading = ego_lane.position(x0, rng.normal(0.0, 0.2)), ego_lane.heading_at(x0) + rng.normal(0.0, 0.01)
+        ego = self.action_type.vehicle_class(self.road, position, heading=heading, speed=self._start_speed())
         self.controlled_vehicles = [ego]
         self.road.vehicles.append(ego)
 
@@ -129,17 +97,9 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
             self._place_traffic_vehicle(x0 + behind, x0 + ahead)
 
     def _place_traffic_vehicle(self, low: float, high: float) -> bool:
-        """
-        Put one IDM vehicle at a random free spot of a random lane between two abscissas.
-
-        :param low: lowest abscissa [m]
-        :param high: highest abscissa [m]
-        :return: whether a free spot was found
-        """
+        """:return: whether a traffic vehicle was put at a random free spot of a random lane between two abscissas [m]"""
         config, rng = self.config, self.np_random
-        vehicle_type = utils.class_from_path(config["other_vehicles_type"])
-        if config["fast_simulation"]:
-            vehicle_type = fast_vehicle_class(vehicle_type)
+        vehicle_type = simulation.fast_vehicle_class(utils.class_from_path(config["other_vehicles_type"]))
         ego_x, ego_lane = self.vehicle.position[0], self.vehicle.lane_index
         abscissas: dict[LaneIndex, list[float]] = {}  # of the vehicles on each lane, gathered once for the 50 draws
         for v in self.road.vehicles:
@@ -147,11 +107,11 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         for _ in range(50):
             lane_index: LaneIndex = ("0", "1", int(rng.integers(config["lanes_count"])))
             x = rng.uniform(low, high)
-            if lane_index == ego_lane and self.EGO_CLEARANCE[0] < x - ego_x < self.EGO_CLEARANCE[1]:
-                continue
-            if abs(x - ego_x) < self.TRAFFIC_GAP:  # nobody alongside the ego either
-                continue
-            if any(abs(v_x - x) < self.TRAFFIC_GAP for v_x in abscissas.get(lane_index, ())):
+            if (
+                (lane_index == ego_lane and self.EGO_CLEARANCE[0] < x - ego_x < self.EGO_CLEARANCE[1])
+                or abs(x - ego_x) < self.TRAFFIC_GAP  # nobody alongside the ego either
+                or any(abs(v_x - x) < self.TRAFFIC_GAP for v_x in abscissas.get(lane_index, ()))
+            ):
                 continue
             vehicle = vehicle_type.make_on_lane(self.road, lane_index, x, speed=rng.uniform(*config["traffic_speed_range"]))
             vehicle.randomize_behavior()
@@ -171,13 +131,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
                 self.road.vehicles.remove(vehicle)
                 self._pending_entries.append(dx < behind)
         # Entries that find no free spot wait for a later step, so the vehicle count stays constant.
-        self._pending_entries = [
-            enters_ahead
-            for enters_ahead in self._pending_entries
-            if not self._place_traffic_vehicle(
-                *((ego_x + ahead - 20.0, ego_x + ahead) if enters_ahead else (ego_x + behind, ego_x + behind + 20.0))
-            )
-        ]
+        windows = {True: (ego_x + ahead - 20.0, ego_x + ahead), False: (ego_x + behind, ego_x + behind + 20.0)}
+        self._pending_entries = [front for front in self._pending_entries if not self._place_traffic_vehicle(*windows[front])]
 
     def _road_clearance(self, position: np.ndarray) -> float:
         lane_width = AbstractLane.DEFAULT_WIDTH

@@ -1,28 +1,7 @@
 """
-A scripted driver for the paper's driving scenarios: a baseline to compare learnt policies with, and the driver that
-``benchmarks/standing_value.py`` sets against standing still.
-
-It reads only the observation (and the env's config for the scales, the action bounds and the ego's length): pure
-pursuit on the observed reference waypoints, a speed controller towards the target speed encoded in the waypoint
-spacing, braking for the nearest vehicle in its corridor ahead and, with ``yield_to_crossing=True``, braking for
-any vehicle whose constant-velocity prediction meets the ego's path within ``horizon`` seconds (crossing and
-oncoming traffic at the intersection, vehicles in the target lane of a lane change).
-
-:class:`JunctionDriver` is the intersection's better demonstrator: the same tracking, and a gap acceptance at the
-stop line that reads the traffic's planned routes from the simulator (so it sees more than the observation). On four
-sets of 50 unseen seeds it collides in 8%, 8%, 10% and 14% of the episodes, where :class:`ScriptedDriver` collides
-in 12%, 14%, 18% and 18%; learners trained on its demonstrations did not collide less than on the scripted
-driver's (``benchmarks/README.md``).
-
-Example::
-
-    env = gym.make("DACERF-Intersection-v0")
-    driver = ScriptedDriver(env)
-    obs, _ = env.reset(seed=0)
-    obs, reward, terminated, truncated, info = env.step(driver(obs))
-
-:func:`sb3_dacerf.common.demonstrations.add_scripted_transitions` puts a driver's transitions in a model's replay
-buffer (demonstrations).
+Scripted drivers of the driving scenarios, baselines and demonstrators: ``env.step(ScriptedDriver(env)(obs))``.
+:class:`ScriptedDriver` reads only the observation (and the env's config for scales and bounds);
+:class:`JunctionDriver` adds a gap acceptance at the intersection's stop line that reads the traffic's routes.
 """
 
 from __future__ import annotations
@@ -39,12 +18,11 @@ from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, Intersectio
 
 class ScriptedDriver:
     """
-    Reference tracker with braking for the vehicle ahead and, optionally, yielding to crossing traffic.
+    Pure pursuit on the observed waypoints, a speed controller towards the target speed their spacing encodes, braking
+    for the nearest vehicle in its corridor ahead and, with ``yield_to_crossing``, for any vehicle whose
+    constant-velocity prediction comes within ``conflict_distance`` [m] of its path within ``horizon`` [s].
 
     :param env: a ``DACERF-Multilane-v0`` / ``DACERF-Intersection-v0`` env (wrapped or not)
-    :param yield_to_crossing: brake for vehicles predicted to meet the ego's path (see the module docstring)
-    :param horizon: prediction horizon of the yielding check [s]
-    :param conflict_distance: centre distance counted as a conflict [m]
     """
 
     def __init__(self, env: gym.Env, yield_to_crossing: bool = True, horizon: float = 2.5, conflict_distance: float = 3.0):
@@ -56,30 +34,23 @@ class ScriptedDriver:
             )
         config = unwrapped.config
         self.position_scale, self.speed_scale = config["position_scale"], config["speed_scale"]
-        self.n_waypoints = config["reference_waypoints"]
-        self.waypoint_interval = config["reference_waypoint_interval"]
-        self.length = unwrapped.vehicle.LENGTH
-        self.yield_to_crossing = yield_to_crossing
-        self.horizon, self.conflict_distance = horizon, conflict_distance
-        self._unwrapped = unwrapped
+        self.n_waypoints, self.waypoint_interval = config["reference_waypoints"], config["reference_waypoint_interval"]
+        self.length, self._unwrapped = unwrapped.vehicle.LENGTH, unwrapped
+        self.yield_to_crossing, self.horizon, self.conflict_distance = yield_to_crossing, horizon, conflict_distance
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """
-        :param obs: the flat observation of one env
-        :return: the env's action that moves its command towards the acceleration and steering this driver wants
-        """
+        """:return: the action, for the flat observation of one env, towards the command this driver wants"""
         v_x = float(obs[0]) * self.speed_scale
         end = EGO_FEATURES + WAYPOINT_FEATURES * self.n_waypoints
         waypoints = obs[EGO_FEATURES:end].reshape(-1, WAYPOINT_FEATURES) * self.position_scale
         vehicles = obs[end:].reshape(-1, VEHICLE_FEATURES)
         vehicles = vehicles[vehicles[:, 5] > 0]
-        # The waypoint spacing is the target speed times the waypoint interval.
         reference_speed = float(np.hypot(*(waypoints[1, :2] - waypoints[0, :2])) / self.waypoint_interval)
         desired = np.array([self._acceleration(waypoints, vehicles, v_x, reference_speed), self._steering(waypoints, v_x)])
         return self._unwrapped.action_type.command_action(desired).astype(np.float32)
 
     def _steering(self, waypoints: np.ndarray, v_x: float) -> float:
-        """Pure pursuit: the front-wheel angle towards the waypoint ~0.8 s of travel (at least 4 m) ahead."""
+        """Pure pursuit of the waypoint ~0.8 s of travel (at least 4 m) ahead."""
         distances = np.hypot(waypoints[:, 0], waypoints[:, 1])
         target = waypoints[min(int(np.searchsorted(distances, max(4.0, 0.8 * v_x))), self.n_waypoints - 1), :2]
         curvature = 2 * target[1] / max(target @ target, 1e-6)
@@ -99,7 +70,7 @@ class ScriptedDriver:
     def _conflict(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float) -> bool:
         """Whether a vehicle's constant-velocity prediction comes within ``conflict_distance`` of the ego's path."""
         times = np.arange(0.0, self.horizon + 1e-9, 0.25)
-        # The ego moves along the waypoints at its speed, at least 2 m/s (so that a stopped ego checks it may go).
+        # The ego moves along the waypoints at its speed, at least 2 m/s (a stopped ego checks it may go)
         path_s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(waypoints[:, :2], axis=0).T))))
         ego_s = np.minimum(max(v_x, 2.0) * times, path_s[-1])
         ego = np.column_stack([np.interp(ego_s, path_s, waypoints[:, 0]), np.interp(ego_s, path_s, waypoints[:, 1])])
@@ -116,60 +87,26 @@ class ScriptedDriver:
 
 class JunctionDriver(ScriptedDriver):
     """
-    A gap-accepting driver for ``DACERF-Intersection-v0``: the demonstrator of the intersection's training recipe.
-
-    It tracks the reference as :class:`ScriptedDriver` does (pure pursuit, speed control, braking for the vehicle
-    ahead), and before its front crosses the junction's stop line it checks its whole crossing against the traffic:
-    each vehicle within 80 m is predicted along its planned route (highway-env's, read from the simulator: this
-    driver sees more than the observation holds), and its time window on the ego's path (arriving at least as early as
-    accelerating at ``traffic_acceleration`` up to ``traffic_max_speed``, leaving no later than at ``traffic_min_speed``,
-    each widened by ``margin``) is compared with the ego's own (accelerating at ``ego_acceleration`` from its speed up
-    to the target speed). On a conflict the ego brakes towards a stop before it, at the stop line at the latest, at
-    most ``approach_deceleration``; conflicts it can no longer stop before (the paper's braking bound is 0.8 m/s²) are
-    passed. Once its front is in the junction the ego is committed: it crosses, braking only for the vehicle ahead,
-    since a car stopped in the junction is in the way of everyone's turn.
-
-    The vehicles are covered by three circles along their axis; two vehicles' paths conflict where circles come
-    within ``conflict_distance``.
-
-    :param env: a ``DACERF-Intersection-v0`` env (wrapped or not)
-    :param conflict_distance: distance between circle centres counted as a conflict [m]
-    :param margin: widening of the traffic's time windows [s]
-    :param traffic_acceleration: the acceleration the traffic's earliest arrival assumes [m/s²]
-    :param traffic_max_speed: the speed the traffic's earliest arrival assumes it reaches [m/s]
-    :param traffic_min_speed: the speed the traffic's latest departure assumes at least [m/s]
-    :param ego_acceleration: the ego's acceleration in its own crossing plan [m/s²]
-    :param approach_deceleration: the deceleration the approach to a stop plans with [m/s²]
+    A gap-accepting driver for ``DACERF-Intersection-v0``: tracking as :class:`ScriptedDriver` does, and before the
+    stop line checking its crossing against the time windows of the traffic within 80 m on its path (along their
+    planned routes; vehicles are three circles, paths conflict within 3.1 m). It brakes to stop before a conflict (at
+    the line at the latest) unless it no longer can; in the junction it brakes only for the vehicle ahead.
     """
 
-    CIRCLE_OFFSETS = np.array([-1.67, 0.0, 1.67])
-    """Centres of the three circles covering a 5 m x 2 m vehicle, along its axis from its centre [m]."""
-    PREDICTION_DISTANCES = np.arange(0.0, 80.0, 1.0)
-    """Distances along each traffic vehicle's route at which it is predicted [m]."""
+    CIRCLE_OFFSETS = np.array([-1.67, 0.0, 1.67])  #: [m] the circles covering a 5 m x 2 m vehicle, along its axis
+    PREDICTION_DISTANCES = np.arange(0.0, 80.0, 1.0)  #: [m] along each traffic vehicle's route, where it is predicted
+    TRAFFIC_ACCELERATION, TRAFFIC_MAX_SPEED, TRAFFIC_MIN_SPEED, MARGIN = 3.0, 9.0, 2.0, 1.0
+    """A traffic vehicle arrives no earlier than accelerating at [m/s²] up to [m/s], leaves no later than at [m/s],
+    each widened by [s]."""
+    EGO_ACCELERATION, APPROACH_DECELERATION = 0.7, 0.5
+    """[m/s²] of the ego's crossing plan (up to its target speed) and at most of its approach to a stop."""
 
-    def __init__(
-        self,
-        env: gym.Env,
-        conflict_distance: float = 3.1,
-        margin: float = 1.0,
-        traffic_acceleration: float = 3.0,
-        traffic_max_speed: float = 9.0,
-        traffic_min_speed: float = 2.0,
-        ego_acceleration: float = 0.7,
-        approach_deceleration: float = 0.5,
-    ):
-        super().__init__(env, yield_to_crossing=False)
+    def __init__(self, env: gym.Env):
+        super().__init__(env, yield_to_crossing=False, conflict_distance=3.1)
         if not isinstance(env.unwrapped, IntersectionEnv):
             raise TypeError(
                 f"JunctionDriver drives DACERF-Intersection-v0, got {type(env.unwrapped).__name__}: use ScriptedDriver"
             )
-        self.conflict_distance, self.margin = conflict_distance, margin
-        self.traffic_acceleration, self.traffic_max_speed, self.traffic_min_speed = (
-            traffic_acceleration,
-            traffic_max_speed,
-            traffic_min_speed,
-        )
-        self.ego_acceleration, self.approach_deceleration = ego_acceleration, approach_deceleration
         self.braking = -float(env.unwrapped.config["acceleration_range"][0])
 
     def _acceleration(self, waypoints: np.ndarray, vehicles: np.ndarray, v_x: float, reference_speed: float) -> float:
@@ -179,30 +116,28 @@ class JunctionDriver(ScriptedDriver):
             in_corridor = x > 0 and abs(y) < 2.5
             if in_corridor and ((cos_phi > 0.5 and gap < 2.0 * max(v_x, 1.0) + 5) or gap < 4.0):
                 desired = -1.0
-        to_line = self._front_to_stop_line()
+        to_line = float(self._unwrapped.vehicle.position[1] - self.length / 2 - JUNCTION_HALF_SIZE)  # front to stop line
         if to_line > -0.5:  # not yet committed to the junction
             stop = self._stop_point(waypoints[:, :2], v_x, reference_speed, to_line)
             if stop is not None:
                 room = stop - self.length / 2 - 1.0
-                allowed = min(np.sqrt(2 * self.approach_deceleration * max(room, 0.0)), reference_speed)
+                allowed = min(np.sqrt(2 * self.APPROACH_DECELERATION * max(room, 0.0)), reference_speed)
                 approach = -self.braking if room <= 0.5 else float(np.clip(allowed - v_x, -self.braking, self.braking))
                 desired = min(desired, approach)
         return desired
 
-    def _front_to_stop_line(self) -> float:
-        """Distance [m] from the ego's front to the junction's edge on its approach arm (negative once inside)."""
-        return float(self._unwrapped.vehicle.position[1] - self.length / 2 - JUNCTION_HALF_SIZE)
-
     def _stop_point(self, waypoints: np.ndarray, v_x: float, reference_speed: float, to_line: float) -> float | None:
         """The arc length along the ego's path [m] of the nearest conflict it must and can stop before, if any."""
-        # The ego's path: its position, the waypoints and 30 m straight on, every 0.5 m, with the times of its plan.
+        # the ego's path (its position, the waypoints and 30 m straight on) every 0.5 m, with the times of its plan
         points = np.vstack([[0.0, 0.0], waypoints])
         heading = (points[-1] - points[-2]) / max(float(np.linalg.norm(points[-1] - points[-2])), 1e-6)
         points = np.vstack([points, points[-1] + np.outer(np.arange(1.0, 31.0), heading)])
         arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))])
         s = np.arange(0.0, arc[-1], 0.5)
+        if len(s) < 2:  # the waypoints gathered at the ego (a reference speed of 0): nothing to check
+            return None
         path = np.column_stack([np.interp(s, arc, points[:, 0]), np.interp(s, arc, points[:, 1])])
-        times = travel_time(s, max(v_x, 0.0), self.ego_acceleration, max(reference_speed, v_x))
+        times = travel_time(s, max(v_x, 0.0), self.EGO_ACCELERATION, max(reference_speed, v_x))
         tangents = np.gradient(path, axis=0)
         tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-9)
         ego_circles = path[:, None, :] + self.CIRCLE_OFFSETS[None, :, None] * tangents[:, None, :]
@@ -221,15 +156,14 @@ class JunctionDriver(ScriptedDriver):
             if len(traffic_index) == 0:
                 continue
             s_in, s_out = s[ego_index].min(), s[ego_index].max()
-            traffic_in = float(
-                travel_time(distances[traffic_index].min(), speed, self.traffic_acceleration, self.traffic_max_speed)
-            )
-            traffic_out = distances[traffic_index].max() / max(speed, self.traffic_min_speed)
+            first, last = distances[traffic_index].min(), distances[traffic_index].max()
+            traffic_in = float(travel_time(first, speed, self.TRAFFIC_ACCELERATION, self.TRAFFIC_MAX_SPEED))
+            traffic_out = last / max(speed, self.TRAFFIC_MIN_SPEED)
             ego_in = float(np.interp(s_in - occupancy, s, times)) if s_in > occupancy else 0.0
             ego_out = float(np.interp(s_out + occupancy, s, times))
             if (
-                ego_in < traffic_out + self.margin
-                and traffic_in - self.margin < ego_out
+                ego_in < traffic_out + self.MARGIN
+                and traffic_in - self.MARGIN < ego_out
                 and stopping <= s_in - self.length / 2 + 0.5
             ):
                 stops.append(s_in)
@@ -241,9 +175,8 @@ class JunctionDriver(ScriptedDriver):
 
     def _predictions(self) -> list[tuple[float, np.ndarray, np.ndarray]]:
         """
-        Each traffic vehicle within 80 m that may cross the ego's path (not one ahead in its lane, which car following
-        handles, nor one behind it in its direction), in the ego's frame: speed, positions along its planned route at
-        ``PREDICTION_DISTANCES`` and the unit vectors of its heading there.
+        Each traffic vehicle within 80 m that may cross the ego's path (not one ahead in its lane nor one behind it),
+        in the ego's frame: speed, positions along its planned route at ``PREDICTION_DISTANCES`` and heading vectors.
         """
         env, ego = self._unwrapped, self._unwrapped.vehicle
         cos_h, sin_h = np.cos(ego.heading), np.sin(ego.heading)
@@ -263,17 +196,11 @@ class JunctionDriver(ScriptedDriver):
                 env.road.network.position_heading_along_route(route, start + d, 0.0, vehicle.lane_index)
                 for d in self.PREDICTION_DISTANCES
             ]
-            positions = np.array([p for p, _ in along])
+            positions = (np.array([p for p, _ in along]) - ego.position) @ rotation.T
             headings = np.array([h for _, h in along]) - ego.heading
-            predictions.append(
-                (
-                    float(vehicle.speed),
-                    (positions - ego.position) @ rotation.T,
-                    np.column_stack([np.cos(headings), np.sin(headings)]),
-                )
-            )
+            predictions.append((float(vehicle.speed), positions, np.column_stack([np.cos(headings), np.sin(headings)])))
         return predictions
 
 
+#: The drivers by the names the command-line tools give them
 DEMONSTRATORS: dict[str, type[ScriptedDriver]] = dict(zip(DEMONSTRATOR_NAMES, (ScriptedDriver, JunctionDriver), strict=True))
-"""The drivers by the names the command-line tools give them."""

@@ -1,11 +1,7 @@
-"""
-The paper's task layer over a highway-env environment (:class:`PaperDrivingMixin`): configuration, the step loop
-(simulate, perceive once, observe, reward, terminate, info), termination and rendering.
-"""
+"""The paper's task layer over a highway-env environment: config, step loop, termination, info and rendering."""
 
 from __future__ import annotations
 
-import contextlib
 import os
 from collections import deque
 from typing import TYPE_CHECKING, ClassVar
@@ -19,91 +15,44 @@ from sb3_dacerf.envs.driving.common.action import IncrementalAction
 from sb3_dacerf.envs.driving.common.config import COMMON_RULES, Rule, check_config
 from sb3_dacerf.envs.driving.common.observation import EgoFrameObservation, Scene, observe_scene
 from sb3_dacerf.envs.driving.common.reference import ReferencePath
-from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, reward_terms
+from sb3_dacerf.envs.driving.common.reward import REWARD_TERMS, REWARD_WEIGHTS, reward_terms
 from sb3_dacerf.envs.driving.density import DensitySpec, density_weights
 
-if TYPE_CHECKING:
-    # What the mixin is mixed into: type checkers see highway-env's attributes (config, vehicle, road, ...) and methods
+if TYPE_CHECKING:  # what the mixin is mixed into, for the type checkers
     from highway_env.envs.common.abstract import AbstractEnv as _HighwayEnv
 else:
     _HighwayEnv = object
 
-# highway-env keys that our action / observation / reward replace: dropped so setting them is an error, not a no-op.
+# highway-env keys that our action / observation / reward replace: dropped, so that setting one is an error.
 _REPLACED_STOCK_KEYS = (
-    "observation",
-    "action",
-    "collision_reward",
-    "right_lane_reward",
-    "high_speed_reward",
-    "lane_change_reward",
-    "arrived_reward",
-    "reward_speed_range",
-    "normalize_reward",
-    "offroad_terminal",
-    "vehicles_density",
-    "ego_spacing",
-    "initial_lane_id",
-    "controlled_vehicles",
-    "destination",
-)
-
-
-@contextlib.contextmanager
-def _headless_video_driver():
-    """
-    Let pygame initialise its display on a machine without one, for offscreen rendering only.
-
-    Without ``DISPLAY`` / ``WAYLAND_DISPLAY`` and without ``SDL_VIDEODRIVER``, SDL finds no video device; its
-    ``offscreen`` driver needs none. The variable is set while highway-env's viewer initialises pygame and restored
-    afterwards, so importing or using the env leaves the process environment as it was.
-    """
-    headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") or "SDL_VIDEODRIVER" in os.environ)
-    if headless:
-        os.environ["SDL_VIDEODRIVER"] = "offscreen"
-    try:
-        yield
-    finally:
-        if headless:
-            os.environ.pop("SDL_VIDEODRIVER", None)
+    "observation action collision_reward right_lane_reward high_speed_reward lane_change_reward arrived_reward "
+    "reward_speed_range normalize_reward offroad_terminal vehicles_density ego_spacing initial_lane_id "
+    "controlled_vehicles destination"
+).split()
 
 
 class PaperDrivingMixin(_HighwayEnv):
     """
-    The paper's task layer over a highway-env environment: put it first in the bases of a subclass of a
-    highway-env environment, which must build ``self.reference`` (a :class:`ReferencePath`) and
-    ``self.reference_speed`` when it creates the ego vehicle, and implement ``_road_clearance`` and
-    ``_is_success``.
+    The paper's task layer, first in the bases of a subclass of a highway-env environment, which builds
+    ``self.reference`` and ``self.reference_speed`` with the ego and implements ``_road_clearance`` and ``_is_success``.
 
-    ``step()`` simulates, then computes the :class:`Scene` once (``self.scene``), from which the observation, the
-    reward terms, the termination and the info are all read.
-
-    :param config: overrides of ``default_config()``; unknown keys raise ``ValueError``
+    :param config: overrides of ``default_config()``; unknown keys and invalid values raise ``ValueError``
     :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
-    :param density: traffic density, one of ``"sparse"``, ``"normal"``, ``"dense"``, or a distribution that every
-        reset draws the episode's density from: ``"random"`` (the three alike), a list of densities or a dict of
-        weights (:mod:`sb3_dacerf.envs.driving.density`); the config keys of :attr:`DENSITY_CONFIGS` are then the
-        drawn density's, so ``config`` must leave them out
+    :param density: a density or a distribution of them (:mod:`sb3_dacerf.envs.driving.density`)
     """
 
-    DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}
-    """Config overrides of each traffic density."""
-    CONFIG_RULES: ClassVar[dict[str, Rule]] = {}
-    """Type and range checks of the scenario's own config keys (see :mod:`.config`)."""
-
+    DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}  #: config overrides of each traffic density
+    CONFIG_RULES: ClassVar[dict[str, Rule]] = {}  #: type and range checks of the scenario's own config keys
+    TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset()  #: keys that evaluations leave out (exploring starts)
     reference: ReferencePath
     reference_speed: float
-    TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset()
-    """Config keys that shape training episodes only (e.g. exploring starts): a trained driver is evaluated without them."""
+    scene: Scene
+    density: str  # of the current episode
+    density_weights: dict[str, float]  # the probability of each density an episode can have
     _progress: deque[float]
-    # Set by highway-env: None until the first reset / render
     observation_space: spaces.Space | None
     action_space: spaces.Space | None
     viewer: EnvViewer | None
-
-    density: str
-    """The traffic density of the current episode (drawn at each reset when the env was made with several)."""
-    density_weights: dict[str, float]
-    """The probability of each density an episode can have (one density: ``{density: 1.0}``)."""
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None, density: DensitySpec = "normal") -> None:
         self.density_weights = density_weights(density)
@@ -113,10 +62,6 @@ class PaperDrivingMixin(_HighwayEnv):
             raise TypeError(f"config must be a dict of overrides, got {type(config).__name__}")
         self.density = next(iter(self.density_weights))
         self._check_density_keys(config or {})
-        self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
-        self.scene: Scene | None = None
-        self._episode_over = False  # terminated or truncated returned since the last reset
-        self._warned_step_after_end = False
         # With several densities, each reset sets the drawn density's keys.
         density_config = self.DENSITY_CONFIGS[self.density] if len(self.density_weights) == 1 else {}
         super().__init__({**density_config, **(config or {})}, render_mode=render_mode)
@@ -142,52 +87,23 @@ class PaperDrivingMixin(_HighwayEnv):
                 "acceleration_range": [-0.8, 0.8],  # [m/s²]
                 "steering_range": [-0.571, 0.571],  # [rad]
                 "huber_delta": 1.0,
-                "rho_lat": 1.5,
-                "rho_long": 3.0,
-                "rho_heading": 0.3,
-                "rho_acc": 1.0,
-                "rho_steer": 0.1,
-                "rho_yaw": 0.7,
-                "rho_jerk": 0.5,
-                "rho_steer_rate": 0.005,
-                "rho_step": 1.0,
-                "rho_front": 10.0,
-                "rho_side": 0.0,
-                "rho_space": 2.0,
-                "rho_rear": 0.0,
-                "rho_boundary": 20.0,
+                **{f"rho_{name}": weight for name, weight in REWARD_WEIGHTS.items()},
                 "safe_time_headway": 1.0,  # Δt_safe [s]
-                # False: the paper's constant target speed per episode; True: capped by what the vehicle ahead allows
-                # (observation.traffic_following_speed)
+                # True: the target speed capped by what the vehicle ahead allows; False: the paper's constant one
                 "reference_speed_follows_traffic": False,
                 "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
                 "boundary_threshold": 0.5,  # d_thresh [m]
-                # Severe events (collision, leaving the road): "dynamic" (see _severe_penalty) or a constant (paper: 200)
-                "collision_penalty": "dynamic",
+                "collision_penalty": "dynamic",  # of severe events: "dynamic" (see _severe_penalty) or a number
                 "dynamic_penalty_base": 200.0,  # the dynamic penalty's floor, at the time limit
-                "dynamic_penalty_cost_rate": 20.0,  # per step left: the per-step cost of driving on that is still preferred
+                "dynamic_penalty_cost_rate": 20.0,  # per step left: the per-step cost of driving on still preferred
                 "dynamic_penalty_discount": 1.0,  # discount of the steps left (the learner's gamma; 1: undiscounted)
-                # A stall (less than stall_distance [m] of progress along the reference within stall_timeout [s])
-                # ends the episode with the severe-event penalty; 0: never
+                # Less than stall_distance [m] of progress along the reference in stall_timeout [s] (0: never) ends
+                # the episode with the severe-event penalty
                 "stall_timeout": 0.0,
                 "stall_distance": 2.0,
-                # True: highway-env's road, lane network and IDM traffic through the faster classes of .simulation,
-                # which give the same traffic and episodes; False: highway-env's own classes (slower)
-                "fast_simulation": True,
             }
         )
         return config
-
-    def __setstate__(self, state: dict) -> None:
-        """
-        Unpickle an env, e.g. from a training checkpoint, also one pickled by an earlier version: config keys added
-        since then take their defaults, and an episode in progress goes on without a stall history.
-        """
-        self.__dict__.update({**state, "config": {**self.default_config(), **state["config"]}})
-        if "density_weights" not in state:
-            self.density_weights = {self.density: 1.0}
-        if "_progress" not in state and self.scene is not None:
-            self._start_stall_history()
 
     def configure(self, config: dict | None) -> None:
         unknown = sorted(set(config or {}) - set(self.default_config()))
@@ -200,7 +116,7 @@ class PaperDrivingMixin(_HighwayEnv):
         check_config(self.config, self.config_rules(), self.default_config(), type(self).__name__)
 
     def _check_density_keys(self, config: dict) -> None:
-        """Refuse config values for the keys a drawn density sets (they would be overwritten at the next reset)."""
+        """Refuse config values for the keys a drawn density sets (the next reset would overwrite them)."""
         if len(getattr(self, "density_weights", ())) < 2:
             return
         density_keys = sorted({key for overrides in self.DENSITY_CONFIGS.values() for key in overrides} & set(config))
@@ -217,17 +133,8 @@ class PaperDrivingMixin(_HighwayEnv):
         return {**COMMON_RULES, **cls.CONFIG_RULES}
 
     def define_spaces(self) -> None:
-        config = self.config
-        self.observation_type = EgoFrameObservation(self)
-        self.action_type = IncrementalAction(
-            self,
-            acceleration_increment_range=config["acceleration_increment_range"],
-            steering_increment_range=config["steering_increment_range"],
-            acceleration_range=config["acceleration_range"],
-            steering_range=config["steering_range"],
-        )
-        # The command an episode starts with: no acceleration and the ego's steering (zero, or the path's steering of
-        # an exploring start inside a turn, reference_start_probability).
+        self.observation_type, self.action_type = EgoFrameObservation(self), IncrementalAction(self)
+        # The steering command starts at the ego's (non-zero for an exploring start inside a turn).
         if self.controlled_vehicles:
             self.action_type.command[1] = self.controlled_vehicles[0].action["steering"]
         # highway-env rebuilds the spaces on every reset; keeping ours keeps any seed set on them.
@@ -238,39 +145,30 @@ class PaperDrivingMixin(_HighwayEnv):
 
     def _reset(self) -> None:
         self._reward_terms = dict.fromkeys(REWARD_TERMS, 0.0)
-        self._episode_over = self._warned_step_after_end = False
+        self._episode_over = self._warned_step_after_end = False  # terminated or truncated returned, and warned of
         if len(self.density_weights) > 1:
-            # Drawn from the env's generator, which reset(seed=...) seeds: a seed gives the same density every time.
+            # From the env's generator, which reset(seed=...) seeds: a seed gives the same density every time.
             names, probabilities = list(self.density_weights), list(self.density_weights.values())
             self.density = names[int(self.np_random.choice(len(names), p=probabilities))]
             self.config.update(self.DENSITY_CONFIGS[self.density])
         super()._reset()
-        # The ego stops instead of reversing: the paper's task has no reverse gear.
-        self.vehicle.MIN_SPEED = 0.0
+        self.vehicle.MIN_SPEED = 0.0  # the ego stops instead of reversing
         self.scene = observe_scene(self)
-        self._start_stall_history()
-
-    def _start_stall_history(self) -> None:
-        """The ego's progress along its reference over the last ``stall_timeout`` seconds, from the current scene."""
+        # the ego's progress along its reference over the last stall_timeout seconds
         window = round(self.config["stall_timeout"] * self.config["policy_frequency"])
-        self._progress = deque([self._current_scene().reference_progress], maxlen=window + 1 if window else None)
+        self._progress = deque([self.scene.reference_progress], maxlen=window + 1 if window else None)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """
-        Apply ``[Δa_x, Δδ]``, simulate one policy period, then perceive the scene once and derive from it the
-        observation, reward, termination and info.
+        Apply ``[Δa_x, Δδ]`` (clipped to the action space), simulate one policy period, then perceive the scene once.
 
-        :param action: ``[Δa_x, Δδ]``, shape (2,); values beyond the action space's bounds are clipped to them
         :raises ValueError: an action of another shape, or with NaN / infinite values
-        :raises gymnasium.error.ResetNeeded: ``step()`` on an env without a scene (``gym.make``'s ``OrderEnforcing``
-            already raises it before the first ``reset()``)
         """
         if self.road is None or self.vehicle is None:
             raise ResetNeeded("Cannot call step() before reset(): call env.reset(seed=...) first")
         action = self.action_type.check(action)
         if self._episode_over and not self._warned_step_after_end:
-            # As Gymnasium's own envs (CartPole) do: warn once, then keep simulating.
-            logger.warn(
+            logger.warn(  # as Gymnasium's own envs do: warn once, then keep simulating
                 "You are calling 'step()' even though this environment has already returned terminated = True or "
                 "truncated = True. You should always call 'reset()' once you receive either: the episode is over "
                 "(collision, off the road, arrived or time limit) and any further steps are undefined behavior."
@@ -281,10 +179,9 @@ class PaperDrivingMixin(_HighwayEnv):
         self.scene = observe_scene(self)
         self._progress.append(self.scene.reference_progress)
         obs = self.observation_type.observe(self.scene)
-        self._reward_terms = self._rewards(action)
+        self._reward_terms = self._rewards()
         reward = float(sum(self._reward_terms.values()))
-        terminated = self._is_terminated()
-        truncated = self._is_truncated()
+        terminated, truncated = self._is_terminated(), self._is_truncated()
         info = self._info(obs, action)
         if self.render_mode == "human":
             self.render()
@@ -293,57 +190,42 @@ class PaperDrivingMixin(_HighwayEnv):
 
     def render(self) -> np.ndarray | None:
         if self.viewer is None and self.render_mode is not None:
-            with _headless_video_driver():
+            # Without a display, pygame initialises SDL's offscreen video driver (the environment is restored after)
+            headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") or "SDL_VIDEODRIVER" in os.environ)
+            if headless:
+                os.environ["SDL_VIDEODRIVER"] = "offscreen"
+            try:
                 self.viewer = EnvViewer(self)
+            finally:
+                if headless:
+                    os.environ.pop("SDL_VIDEODRIVER", None)
             if self.config["offscreen_rendering"]:
-                # highway-env's viewer draws nothing under SDL's "dummy" driver; offscreen frames need no display.
-                self.viewer.enabled = True
+                self.viewer.enabled = True  # highway-env's viewer draws nothing under SDL's "dummy" driver otherwise
         return super().render()
 
     def _is_truncated(self) -> bool:
-        # highway-env accumulates time in steps of 1 / policy_frequency: compare with a tolerance.
-        return self.time >= self.config["duration"] - 1e-6
+        return self.time >= self.config["duration"] - 1e-6  # time accumulates steps of 1 / policy_frequency
 
     def _start_speed(self) -> float:
-        """
-        Initial ego speed [m/s]: ``self.reference_speed`` ± 0.5 m/s (normal noise), never negative.
-
-        Both scenarios start the ego near its target speed: started far from it (the multilane once drew it like
-        the traffic's, up to 10 m/s off, with ±0.8 m/s² to close the gap), the speed-tracking cost alone averaged
-        ~250 per episode even for an ideal driver, and leaving the road (-200) was the better return in ~30% of them.
-        """
+        """Initial ego speed [m/s]: ``self.reference_speed`` ± 0.5 m/s (normal noise), never negative."""
         return max(self.reference_speed + self.np_random.normal(0.0, 0.5), 0.0)
 
     def reference_speed_cap(self) -> float:
         """The highest reference speed [m/s] the scenario allows in its current state: none (``inf``) by default."""
         return np.inf
 
-    def _road_clearance(self, position: np.ndarray) -> float:
-        """Distance [m] from a position to the nearest road edge, negative off the road."""
+    def _road_clearance(self, position: np.ndarray) -> float:  # [m] to the nearest road edge, negative off the road
         raise NotImplementedError
 
-    def _is_success(self) -> bool:
-        """Whether the episode's task is achieved (route completed / destination reached)."""
+    def _is_success(self) -> bool:  # whether the episode's task is achieved
         raise NotImplementedError
 
     def _severe_penalty(self) -> float:
         """
-        The penalty of a collision or of leaving the road at the current step (positive).
-
-        A number ``collision_penalty`` is used as is (the paper's example: 200, the intersection's default).
-        ``"dynamic"`` (the multi-lane default) is this package's formula for the paper's "or dynamically calculated"
-        (the paper gives none), tied to what is left of the episode::
-
-            P = dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left
-
-        with ``steps_left`` the policy steps left until the time limit. ``rho_step`` is the best reward rate (liveness
-        is the only positive term), so the penalty exceeds the reward that the rest of the episode could still earn;
-        ``dynamic_penalty_cost_rate`` is the per-step cost of driving on that must still beat ending the episode:
-        ending the episode at any step is worse, by at least ``dynamic_penalty_base``, than driving on to the time
-        limit or the destination at any average reward above ``-dynamic_penalty_cost_rate`` per step.
-        ``dynamic_penalty_discount`` (γ, default 1) replaces ``steps_left`` by its discounted length
-        ``(1 - γ^steps_left) / (1 - γ)``: the same guarantee for a learner that maximises the return discounted by γ.
-        The dynamic penalty depends on the time left, which the observation does not hold.
+        The (positive) penalty of a severe event at the current step: ``collision_penalty``, or if ``"dynamic"``,
+        ``dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left`` (the policy steps left, or with
+        a ``dynamic_penalty_discount`` γ < 1 their discounted count ``(1 - γ^steps_left) / (1 - γ)``): ending the
+        episode is then worse, by at least the base, than driving on at any reward above ``-dynamic_penalty_cost_rate``.
         """
         config = self.config
         if config["collision_penalty"] != "dynamic":
@@ -353,51 +235,29 @@ class PaperDrivingMixin(_HighwayEnv):
         horizon = steps_left if discount == 1 else (1 - discount**steps_left) / (1 - discount)
         return float(config["dynamic_penalty_base"] + (config["rho_step"] + config["dynamic_penalty_cost_rate"]) * horizon)
 
-    def _rewards(self, action: np.ndarray | None = None) -> dict[str, float]:
-        """
-        The paper's signed reward and cost terms of the current scene (see :mod:`.reward`).
-
-        :param action: unused: the increments that count are those applied after clipping
-        :return: a dict of {term: signed contribution to the reward}
-        """
-        return reward_terms(
-            self.config,
-            self._current_scene(),
-            self.vehicle,
-            self.action_type.applied_increment,
-            self._current_scene().reference_speed,
-            self._severe_penalty(),
-            self._stalled(),
-        )
-
-    def _current_scene(self) -> Scene:
-        """The scene of the current step (``self.scene``); ``ResetNeeded`` before the first ``reset()``."""
-        if self.scene is None:
-            raise ResetNeeded("The env has no scene before reset(): call env.reset(seed=...) first")
-        return self.scene
+    def _rewards(self) -> dict[str, float]:
+        """The paper's signed reward and cost terms of the current scene (see :mod:`.reward`)."""
+        applied = self.action_type.applied_increment
+        return reward_terms(self.config, self.scene, self.vehicle, applied, self._severe_penalty(), self._stalled())
 
     def _reward(self, action: np.ndarray) -> float:
-        return float(sum(self._rewards(action).values()))
+        return float(sum(self._rewards().values()))
 
     def _stalled(self) -> bool:
-        """
-        Whether the ego advanced less than ``stall_distance`` along its reference in the last ``stall_timeout`` s,
-        and neither collided nor left the road (those name the episode's end first).
-        """
+        """Less than ``stall_distance`` of progress in the last ``stall_timeout`` s, without a collision or leaving the road."""
         progress = self._progress
         return (
             progress.maxlen is not None
             and len(progress) == progress.maxlen
             and progress[-1] - progress[0] < self.config["stall_distance"]
-            and not (self.vehicle.crashed or self._current_scene().road_clearance < 0)
+            and not (self.vehicle.crashed or self.scene.road_clearance < 0)
         )
 
     def _is_terminated(self) -> bool:
-        """Collisions, leaving the road and (with ``stall_timeout``) a stall end the episode."""
-        return bool(self.vehicle.crashed or self._current_scene().road_clearance < 0 or self._stalled())
+        return bool(self.vehicle.crashed or self.scene.road_clearance < 0 or self._stalled())
 
     def _info(self, obs: np.ndarray, action: np.ndarray | None = None) -> dict:
-        scene = self._current_scene()
+        scene = self.scene
         crashed, off_road, stalled = bool(self.vehicle.crashed), bool(scene.road_clearance < 0), self._stalled()
         return {
             "speed": float(self.vehicle.speed),

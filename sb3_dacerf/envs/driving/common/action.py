@@ -1,13 +1,6 @@
 """
-The paper's incremental action on highway-env's kinematic bicycle model.
-
-``[Δa_x, Δδ]`` with ``Δa_x ∈ [-0.4, 0.25]`` m/s² and ``Δδ ∈ [-0.025, 0.025]`` rad per policy step (0.1 s, i.e. jerk in
-[-4, 2.5] m/s³ and steering rate within ±0.25 rad/s). The increments are integrated into the commanded longitudinal
-acceleration ``a_x ∈ [-0.8, 0.8]`` m/s² and front-wheel steering angle ``δ ∈ [-0.571, 0.571]`` rad, which are exactly
-the ``acceleration`` (m/s²) and ``steering`` (front-wheel angle, rad) inputs of highway-env's kinematic bicycle model
-(``highway_env.vehicle.kinematics.Vehicle``). Both start at 0 on ``reset()`` (a start of the intersection inside a
-turn, ``reference_start_probability``, starts δ at the steering of the path's curvature). The ego cannot reverse.
-The action space is a ``Box`` with the raw increment bounds (SB3 rescales Box bounds itself).
+The paper's incremental action ``[Δa_x, Δδ]``, integrated into the commanded acceleration ``a_x`` and front-wheel
+angle ``δ`` of highway-env's kinematic bicycle model; its space is a ``Box`` of the raw increment bounds.
 """
 
 from __future__ import annotations
@@ -22,52 +15,29 @@ from highway_env.envs.common.action import ContinuousAction
 
 class IncrementalAction(ContinuousAction):
     """
-    Continuous action ``[Δa_x, Δδ]``: increments of the commanded acceleration [m/s²] and front-wheel
-    steering angle [rad] of highway-env's kinematic bicycle model, integrated and clipped every policy step.
-
-    :param env: the environment
-    :param acceleration_increment_range: bounds of Δa_x per policy step [m/s²]
-    :param steering_increment_range: bounds of Δδ per policy step [rad]
-    :param acceleration_range: bounds of the integrated a_x [m/s²]
-    :param steering_range: bounds of the integrated δ [rad]
+    Continuous action ``[Δa_x, Δδ]``, integrated into the command ``[a_x, δ]`` and clipped every policy step, with the
+    bounds of the env's config (``acceleration_increment_range``, ``steering_increment_range``, ``acceleration_range``,
+    ``steering_range``).
     """
 
-    def __init__(
-        self,
-        env: AbstractEnv,
-        acceleration_increment_range: tuple[float, float] = (-0.4, 0.25),
-        steering_increment_range: tuple[float, float] = (-0.025, 0.025),
-        acceleration_range: tuple[float, float] = (-0.8, 0.8),
-        steering_range: tuple[float, float] = (-0.571, 0.571),
-        **kwargs,
-    ) -> None:
-        super().__init__(env, acceleration_range=acceleration_range, steering_range=steering_range)
-        self.increment_low = np.array([acceleration_increment_range[0], steering_increment_range[0]])
-        self.increment_high = np.array([acceleration_increment_range[1], steering_increment_range[1]])
-        self.command_low = np.array([acceleration_range[0], steering_range[0]])
-        self.command_high = np.array([acceleration_range[1], steering_range[1]])
+    def __init__(self, env: AbstractEnv) -> None:
+        config = env.config
+        super().__init__(env, acceleration_range=config["acceleration_range"], steering_range=config["steering_range"])
+        increments = [config["acceleration_increment_range"], config["steering_increment_range"]]
+        self.increment_low, self.increment_high = np.array(increments).T
+        self.command_low, self.command_high = np.array([config["acceleration_range"], config["steering_range"]]).T
         self.command = np.zeros(2)  # integrated [a_x, δ]
-        self.applied_increment = np.zeros(2)  # increment actually applied after clipping, for the comfort terms
+        self.applied_increment = np.zeros(2)  # the increment applied after clipping, for the comfort terms
 
     def space(self) -> spaces.Box:
         return spaces.Box(self.increment_low.astype(np.float32), self.increment_high.astype(np.float32), dtype=np.float32)
 
     def command_action(self, desired: np.ndarray) -> np.ndarray:
-        """
-        The action that moves the command towards ``desired = [a_x, δ]`` as fast as the increment bounds allow: what a
-        controller that computes the command it wants (:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`)
-        gives the env.
-        """
+        """The action that moves the command towards ``desired = [a_x, δ]`` as fast as the increment bounds allow."""
         return np.clip(np.asarray(desired, dtype=np.float64) - self.command, self.increment_low, self.increment_high)
 
     def check(self, action: np.ndarray) -> np.ndarray:
-        """
-        Check that an action is one finite ``[Δa_x, Δδ]`` pair (values beyond the bounds are allowed: ``act`` clips them).
-
-        :param action: the action given to ``step()``
-        :return: the action as a float64 array of shape (2,)
-        :raises ValueError: wrong shape, non-numeric or non-finite values
-        """
+        """:return: ``step()``'s action as a float64 array of shape (2,) (``act`` clips it), or ``ValueError``"""
         try:
             array = np.asarray(action, dtype=np.float64)
         except (TypeError, ValueError) as error:
@@ -77,7 +47,7 @@ class IncrementalAction(ContinuousAction):
                 f"The action must have shape (2,) ([Δa_x, Δδ] of one env), got shape {array.shape}: "
                 "step a single env with one action (a VecEnv splits a batch of actions per env)"
             )
-        if not (math.isfinite(array[0]) and math.isfinite(array[1])):  # scalar math: a third of np.isfinite's cost
+        if not (math.isfinite(array[0]) and math.isfinite(array[1])):
             raise ValueError(
                 f"The action contains NaN or infinite values: {array.tolist()}. The policy's output is not a number "
                 "(a diverged training, or an observation with NaN fed to it): check its inputs and losses"

@@ -9,23 +9,13 @@ from highway_env.road.lane import AbstractLane
 
 
 def nominal_steering(curvature: float, length: float) -> float:
-    """
-    Front-wheel angle [rad] with which highway-env's kinematic bicycle model drives a path of this curvature.
-
-    :param curvature: path curvature [1/m], signed like the heading's change
-    :param length: vehicle length [m] (the model's axles are at ± length / 2)
-    """
+    """The front-wheel angle [rad] with which highway-env's bicycle model (axles at ± length / 2) drives a curvature [1/m]."""
     beta = math.asin(min(max(curvature * length / 2, -1.0), 1.0))
     return math.atan(2.0 * math.tan(beta))
 
 
 class ReferencePath:
-    """
-    A reference path: a polyline sampled from highway-env lanes (or any curve), with arc-length lookups.
-
-    :param points: (N, 2) world positions along the path [m], without repeated points
-    :param headings: (N,) path headings at the points [rad]
-    """
+    """A polyline of (N, 2) world positions [m] (no repeated points) and their (N,) headings, with arc-length lookups."""
 
     def __init__(self, points: np.ndarray, headings: np.ndarray) -> None:
         self.points = np.asarray(points, dtype=np.float64)
@@ -37,13 +27,7 @@ class ReferencePath:
 
     @classmethod
     def from_lanes(cls, pieces: list[tuple[AbstractLane, float, float]], step: float) -> ReferencePath:
-        """
-        Sample consecutive lane pieces along their centre lines.
-
-        :param pieces: ``(lane, start, end)`` longitudinal ranges [m], each piece starting where the last ends
-        :param step: sampling interval [m]
-        :return: the reference path
-        """
+        """The centre lines of consecutive ``(lane, start, end)`` longitudinal ranges [m], sampled every ``step`` m."""
         points, headings = [], []
         for i, (lane, start, end) in enumerate(pieces):
             # The last piece keeps its end point; the others leave it to the next piece's start.
@@ -54,22 +38,13 @@ class ReferencePath:
             headings += [lane.heading_at(s) for s in s_values]
         return cls(np.array(points), np.array(headings))
 
-    @property
-    def length(self) -> float:
-        return float(self.s[-1])
-
     def project(self, position: np.ndarray) -> tuple[float, float]:
-        """
-        Project a position on the path.
-
-        :param position: world position [m]
-        :return: arc length of the foot point [m] and signed lateral offset [m] (highway-env's lane convention)
-        """
+        """:return: the arc length [m] of a world position's foot point on the path and its signed lateral offset [m]"""
         offsets = self.points - position
         i = int(np.argmin(np.einsum("ij,ij->i", offsets, offsets)))
         px, py = float(position[0]), float(position[1])
         best = (math.inf, 0.0, 0.0)
-        # Scalar math: this runs every step and numpy's per-call cost dominates on 2-vectors.
+        # Scalar math: numpy's per-call cost dominates on 2-vectors.
         for j in (i - 1, i):
             if 0 <= j < len(self.points) - 1:
                 (ax, ay), (bx, by) = self._point_list[j], self._point_list[j + 1]
@@ -84,15 +59,12 @@ class ReferencePath:
 
     def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
-        Interpolate the path at arc lengths, extended by straight lines beyond both ends.
-
-        :param s: arc lengths [m], a 1-d array
+        :param s: arc lengths [m], a 1-d array (beyond both ends, the path goes on straight)
         :return: positions (K, 2) [m], headings (K,) [rad] and curvatures (K,) [1/m]
         """
         headings = np.interp(s, self.s, self.headings)
         positions = np.empty((len(s), 2))
-        positions[:, 0] = np.interp(s, self.s, self.points[:, 0])
-        positions[:, 1] = np.interp(s, self.s, self.points[:, 1])
+        positions[:, 0], positions[:, 1] = np.interp(s, self.s, self.points[:, 0]), np.interp(s, self.s, self.points[:, 1])
         curvatures = np.interp(s, self.s, self.curvatures)
         if s[0] < 0.0 or s[-1] > self.s[-1]:
             beyond = np.where(s > self.s[-1], s - self.s[-1], np.minimum(s, 0.0))

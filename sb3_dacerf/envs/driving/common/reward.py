@@ -1,28 +1,11 @@
 """
-The paper's reward and cost terms (DACER-F, "Simulation Environment" and its reward / cost table).
-
-Every signed term is in ``info["reward_terms"]``; their sum is the reward:
-
-- tracking ``-ρ_lat h(e_lat) - ρ_long h(v_x - v_ref) - ρ_φ h(e_φ)``;
-- control ``-ρ_acc |a_x|³ - ρ_steer |δ - δ_nom|`` (δ_nom: the bicycle-model steering of the reference curvature);
-- comfort ``-ρ_yaw h(r) - ρ_jerk h(Δa_x/Δt) - ρ_Δsteer h(Δδ/Δt)``;
-- liveness ``ρ_step clip(v_x, 0, 3) / 3``;
-- safe following ``-ρ_front (1 - tanh(gap / (v_x Δt_safe)))`` for the nearest vehicle in the ego's corridor ahead;
-- safe space ``-ρ_space Σ intrusion`` of vehicles into a margin box around the ego body (with ``ρ_side`` /
-  ``ρ_rear`` for the parts alongside / behind);
-- boundary ``-ρ_boundary max(0, W_ego/2 + d_thresh - d)`` with ``d`` the distance from the ego centre to the road
-  edge (the paper's ``d_bound - d_thresh + 1.0`` read as a cost that starts ``d_thresh`` before the body touches
-  the edge);
-- ``collision`` / ``off_road``: minus the severe-event penalty on a collision and on leaving the road, which end
-  the episode: the paper's constant 200 at the intersection (its default), and on the multi-lane highway this
-  package's formula for the paper's "or dynamically calculated" (the paper gives none),
-  ``dynamic_penalty_base + (rho_step + dynamic_penalty_cost_rate) * steps_left`` (200 + 21 per step left until the
-  time limit), so that ending the episode early is never worth more than driving on (see
-  ``PaperDrivingMixin._severe_penalty``);
-- ``stalled``: the same penalty when the ego has advanced less than ``stall_distance`` along its reference within the
-  last ``stall_timeout`` seconds, which ends the episode (off by default: ``stall_timeout=0``).
-
-``h(e) = δ_h² (sqrt(1 + (e/δ_h)²) - 1)`` is the pseudo-Huber penalty, ``δ_h = huber_delta`` = 1.
+The paper's reward and cost terms (DACER-F, its reward / cost table); the reward is the sum of the signed terms,
+which ``info["reward_terms"]`` holds. With the pseudo-Huber penalty ``h``: tracking ``-ρ h(error)`` of the lateral,
+speed and heading errors; control ``-ρ_acc |a_x|³ - ρ_steer |δ - δ_nom|``; comfort ``-ρ h(rate)`` of the yaw rate,
+jerk and steering rate; liveness ``ρ_step clip(v_x, 0, 3) / 3``; safe following ``-ρ_front (1 - tanh(gap / (v_x
+Δt_safe)))``; safe space ``-ρ_space Σ intrusion`` into a margin box around the ego (``ρ_side`` / ``ρ_rear`` alongside /
+behind); boundary ``-ρ_boundary max(0, W_ego/2 + d_thresh - d)``; and minus the severe-event penalty on a collision,
+leaving the road or a stall, which end the episode.
 """
 
 from __future__ import annotations
@@ -35,24 +18,15 @@ from highway_env.vehicle.kinematics import Vehicle
 from sb3_dacerf.envs.driving.common.observation import Scene, vehicle_gaps
 from sb3_dacerf.envs.driving.common.reference import nominal_steering
 
-REWARD_TERMS = (
-    "tracking_lateral",
-    "tracking_speed",
-    "tracking_heading",
-    "control_acceleration",
-    "control_steering",
-    "comfort_yaw_rate",
-    "comfort_jerk",
-    "comfort_steering_rate",
-    "liveness",
-    "safe_front",
-    "safe_space",
-    "safe_side",
-    "safe_rear",
-    "boundary",
-    "collision",
-    "off_road",
-    "stalled",
+REWARD_WEIGHTS = {
+    **dict(lat=1.5, long=3.0, heading=0.3, acc=1.0, steer=0.1, yaw=0.7, jerk=0.5, steer_rate=0.005),
+    **dict(step=1.0, front=10.0, side=0.0, space=2.0, rear=0.0, boundary=20.0),
+}
+"""The weights ρ of the terms (config keys ``rho_<name>``), the defaults of both scenarios."""
+REWARD_TERMS = tuple(
+    "tracking_lateral tracking_speed tracking_heading control_acceleration control_steering comfort_yaw_rate "
+    "comfort_jerk comfort_steering_rate liveness safe_front safe_space safe_side safe_rear boundary collision off_road "
+    "stalled".split()
 )
 
 
@@ -62,31 +36,16 @@ def pseudo_huber(error: float, delta: float) -> float:
 
 
 def reward_terms(
-    config: dict,
-    scene: Scene,
-    ego: Vehicle,
-    applied_increment: np.ndarray,
-    reference_speed: float,
-    severe_penalty: float,
-    stalled: bool = False,
+    config: dict, scene: Scene, ego: Vehicle, applied_increment: np.ndarray, severe_penalty: float, stalled: bool = False
 ) -> dict[str, float]:
     """
-    The paper's signed reward and cost terms of one step.
-
-    :param config: the env's config (weights ``rho_*`` and the other reward parameters)
-    :param scene: what the ego perceives after the step
-    :param ego: the ego vehicle (dimensions, ``crashed``)
-    :param applied_increment: the ``[Δa_x, Δδ]`` applied this step after clipping (the comfort terms' rates)
-    :param reference_speed: the ego's target speed [m/s]
-    :param severe_penalty: the penalty of a collision or of leaving the road at this step (positive)
-    :param stalled: whether the episode ends because the ego made no progress (``stall_timeout``) and neither
-        collided nor left the road: the same penalty
-    :return: a dict of {term: signed contribution to the reward}, in the order of ``REWARD_TERMS``
+    The paper's signed reward and cost terms of one step, in the order of ``REWARD_TERMS``, from the env's config,
+    the scene after the step, the ego vehicle, the ``[Δa_x, Δδ]`` applied (after clipping), the (positive) penalty of
+    a severe event and whether the episode ends for lack of progress (``stall_timeout``).
     """
     huber_delta = config["huber_delta"]
     v_x, _, yaw_rate, acceleration, steering = scene.ego.tolist()
     dt = 1.0 / config["policy_frequency"]
-    steering_nominal = nominal_steering(scene.reference_curvature, ego.LENGTH)
     acceleration_increment, steering_increment = applied_increment.tolist()
 
     safe_front = safe_space = safe_side = safe_rear = 0.0
@@ -96,20 +55,19 @@ def reward_terms(
             gap = max(float(gap_long[ahead].min()), 0.0)
             safe_front = config["rho_front"] * (1 - math.tanh(gap / (max(v_x, 1e-3) * config["safe_time_headway"])))
         margin_long, margin_lat = config["safe_space_margin"]
-        # np.minimum / np.maximum: the same values as np.clip at a fraction of its per-call cost on short arrays
+        # np.minimum / np.maximum: np.clip's values at a fraction of its cost on short arrays
         intrusion = np.minimum(np.maximum(np.minimum(1 - gap_long / margin_long, 1 - gap_lat / margin_lat), 0.0), 1.0)
         if intrusion.any():
             safe_space = config["rho_space"] * float(intrusion.sum())
             safe_side = config["rho_side"] * float(intrusion[gap_long <= 0].sum())
             safe_rear = config["rho_rear"] * float(intrusion[(scene.vehicles[:, 0] < 0) & (gap_long > 0)].sum())
 
-    off_road = scene.road_clearance < 0
     terms = {
         "tracking_lateral": -config["rho_lat"] * pseudo_huber(scene.lateral_error, huber_delta),
-        "tracking_speed": -config["rho_long"] * pseudo_huber(v_x - reference_speed, huber_delta),
+        "tracking_speed": -config["rho_long"] * pseudo_huber(v_x - scene.reference_speed, huber_delta),
         "tracking_heading": -config["rho_heading"] * pseudo_huber(scene.heading_error, huber_delta),
         "control_acceleration": -config["rho_acc"] * abs(acceleration) ** 3,
-        "control_steering": -config["rho_steer"] * abs(steering - steering_nominal),
+        "control_steering": -config["rho_steer"] * abs(steering - nominal_steering(scene.reference_curvature, ego.LENGTH)),
         "comfort_yaw_rate": -config["rho_yaw"] * pseudo_huber(yaw_rate, huber_delta),
         "comfort_jerk": -config["rho_jerk"] * pseudo_huber(acceleration_increment / dt, huber_delta),
         "comfort_steering_rate": -config["rho_steer_rate"] * pseudo_huber(steering_increment / dt, huber_delta),
@@ -120,7 +78,7 @@ def reward_terms(
         "safe_rear": -safe_rear,
         "boundary": -config["rho_boundary"] * max(0.0, ego.WIDTH / 2 + config["boundary_threshold"] - scene.road_clearance),
         "collision": -severe_penalty * float(ego.crashed),
-        "off_road": -severe_penalty * float(off_road),
+        "off_road": -severe_penalty * float(scene.road_clearance < 0),
         "stalled": -severe_penalty * float(stalled),
     }
     return {name: float(value) for name, value in terms.items()}
