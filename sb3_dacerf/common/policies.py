@@ -305,8 +305,7 @@ class BatchRenormCritic(EnsembleCritic):
         self.set_bn_training_mode(False)
 
     def set_bn_training_mode(self, mode: bool) -> None:
-        """:param mode: Normalise with the batch's statistics and update the running ones (``True``), or normalise with
-        the running statistics (``False``)"""
+        """:param mode: ``True``: normalise with the batch's statistics, updating the running ones; ``False``: with the latter"""
         for module in self.modules():
             if isinstance(module, EnsembleBatchRenorm):
                 module.train(mode)
