@@ -15,9 +15,9 @@ import numpy as np
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
-    Write a file all or nothing: the block writes the yielded temporary path (``.<name>.<pid>.<random>.tmp.<suffix>``
-    beside ``path``, its folder created if needed), synced and renamed over ``path`` (through a symbolic link) if the
-    block succeeds, else deleted.
+    Write a file all at once or not at all: the block writes to the yielded temporary path (``.<name>.<pid>.<random>
+    .tmp.<suffix>`` in ``path``'s folder, which is created if needed); when it succeeds the file is synced to disk and
+    renamed over ``path`` (a symbolic link is written through), else it is deleted and ``path`` is left as it was.
     """
     path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
