@@ -141,10 +141,8 @@ CONVERTERS = {"dacerf": convert_dacerf_params, "dacer": convert_dacer_params, "d
 
 
 def default_config(algo: str, env_id: str) -> str | None:
-    """
-    The YAML file RL Zoo reads without ``--conf-file``: this package's ``hyperparams/<algo>.yml`` for its algorithms,
-    and for another algorithm with an entry for ``env_id`` there (SAC on ``DMC-*`` ids); else ``None`` (RL Zoo's own).
-    """
+    """The YAML file RL Zoo reads without ``--conf-file``: this package's ``hyperparams/<algo>.yml`` for its algorithms
+    or where it has an entry for ``env_id`` (SAC on ``DMC-*`` ids), else ``None`` (RL Zoo's own)."""
     path = HYPERPARAMS_DIR / f"{algo}.yml"
     if algo in ALGORITHMS or (path.is_file() and env_id in yaml.safe_load(path.read_text())):
         return str(path)
@@ -152,10 +150,8 @@ def default_config(algo: str, env_id: str) -> str | None:
 
 
 def masked_normalization(normalize_kwargs: Params) -> bool:
-    """
-    Take ``masked`` out of RL Zoo's ``normalize`` arguments (``normalize: "dict(norm_obs=True, norm_reward=False,
-    masked=True)"`` in a YAML entry): whether :class:`MaskedVecNormalize` normalises the observations, not ``VecNormalize``.
-    """
+    """Take ``masked`` out of RL Zoo's ``normalize`` arguments (``normalize: "dict(norm_obs=True, masked=True)"`` in a
+    YAML entry): whether :class:`MaskedVecNormalize` normalises the observations instead of ``VecNormalize``."""
     masked = normalize_kwargs.pop("masked", False)
     if not isinstance(masked, bool):
         raise ValueError(f"normalize: masked={masked!r}: write masked=True (MaskedVecNormalize) or leave it out")
@@ -378,10 +374,8 @@ def choose_threads(argv: Sequence[str]) -> None:
 
 
 def register(module: ModuleType) -> None:
-    """
-    Add DACERF, DACER and DSAC to an RL Zoo module (idempotent): ``rl_zoo3.utils`` (also :func:`choose_threads` from
-    ``sys.argv``), ``rl_zoo3.hyperparams_opt``, ``rl_zoo3.exp_manager`` or ``rl_zoo3.callbacks``; others are left alone.
-    """
+    """Add DACERF, DACER and DSAC to an RL Zoo module (idempotent): ``rl_zoo3.utils`` (and :func:`choose_threads` of
+    ``sys.argv``), ``rl_zoo3.hyperparams_opt``, ``rl_zoo3.exp_manager`` or ``rl_zoo3.callbacks``; others are left alone."""
     if module.__name__ == "rl_zoo3.utils":
         module.ALGOS.update(ALGORITHMS)
         choose_threads(sys.argv[1:])

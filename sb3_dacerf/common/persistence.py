@@ -145,10 +145,8 @@ def safe_load(
 
 
 class TwinCriticPersistence(OffPolicyAlgorithm):
-    """
-    Saving and loading of :class:`~sb3_dacerf.common.twin_critic.TwinCriticAlgorithm`, which derives from this class:
-    the actor and critics are saved as part of the policy, with the optimizers of the actor and of the critics.
-    """
+    """Saving and loading of :class:`~sb3_dacerf.common.twin_critic.TwinCriticAlgorithm` (a subclass): the policy,
+    with the optimizers of the actor and of the critics."""
 
     critic: BaseModel
 
@@ -158,10 +156,8 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
         return safe_load(cls, path, *args, **kwargs)
 
     def save(self, path: ZipPath, exclude: Any = None, include: Any = None) -> None:
-        """
-        See :meth:`BaseAlgorithm.save`; the zip also holds ``sb3_dacerf.json``. A file path is written atomically: a
-        temporary file renamed over ``path`` once complete (the next save or load deletes that of a killed save).
-        """
+        """See :meth:`BaseAlgorithm.save`, with ``sb3_dacerf.json`` in the zip; a file path is written atomically (a
+        temporary file renamed over ``path`` once complete; the next save or load deletes that of a killed save)."""
         _save_with_entry(self, path, lambda buffer: super(TwinCriticPersistence, self).save(buffer, exclude, include))
 
     def save_replay_buffer(self, path: ZipPath) -> None:
@@ -173,10 +169,8 @@ class TwinCriticPersistence(OffPolicyAlgorithm):
             super().save_replay_buffer(temporary)
 
     def load_replay_buffer(self, path: ZipPath, truncate_last_traj: bool = True) -> None:
-        """
-        See :meth:`OffPolicyAlgorithm.load_replay_buffer` (a pickle: load only your own). A buffer of other spaces than
-        the model's is refused, and the model keeps its buffer.
-        """
+        """See :meth:`OffPolicyAlgorithm.load_replay_buffer` (a pickle: load only your own); a buffer of other spaces
+        than the model's is refused, and the model keeps its buffer."""
         previous = self.replay_buffer
         super().load_replay_buffer(path, truncate_last_traj)
         for name in ("observation_space", "action_space"):
@@ -257,12 +251,10 @@ def _zip_path(path: ZipPath) -> ZipPath:
     """A stream as it is; ``path``, or ``path.zip`` when only that exists (as SB3 looks it up)."""
     if isinstance(path, io.BufferedIOBase):
         return path
-    path = pathlib.Path(path)
-    if not path.is_file() and pathlib.Path(f"{path}.zip").is_file():
-        return pathlib.Path(f"{path}.zip")
-    if not path.is_file():
-        raise FileNotFoundError(f"No model file at {path} (nor {path}.zip)")
-    return path
+    for candidate in (pathlib.Path(path), pathlib.Path(f"{path}.zip")):
+        if candidate.is_file():
+            return candidate
+    raise FileNotFoundError(f"No model file at {path} (nor {path}.zip)")
 
 
 def _read_json_parts(path: ZipPath) -> tuple[dict[str, Any] | None, dict[str, Any]]:
@@ -288,10 +280,8 @@ def _read_json_parts(path: ZipPath) -> tuple[dict[str, Any] | None, dict[str, An
 
 
 def saved_algorithm_name(path: str | os.PathLike | io.BufferedIOBase) -> str | None:
-    """
-    The lower-case name of the algorithm a model zip was saved by, read as JSON: from ``sb3_dacerf.json``, else from
-    the module of the saved policy class (``sac`` for ``stable_baselines3.sac.policies``); ``None`` if neither names one.
-    """
+    """The lower-case name of the algorithm that saved a model zip, from ``sb3_dacerf.json`` or else the policy class's
+    module (``sac`` for ``stable_baselines3.sac.policies``), read as JSON; ``None`` if neither names one."""
     try:
         return _algorithm_name(*_read_json_parts(_zip_path(path)))  # type: ignore[arg-type]
     except (OSError, ValueError):

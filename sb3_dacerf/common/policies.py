@@ -22,12 +22,9 @@ CRITICS = ("mlp", "layer_norm", "batch_renorm")
 
 class Actor(BasePolicy, ABC):
     """
-    Base of the actors of this package: :meth:`sample` turns state features and noise into actions in [-1, 1] (the
-    algorithm rescales them to the action space's bounds), a deterministic function of the noise, differentiable with
-    respect to the network; ``noise=None``, the noise's mean, gives the deterministic action. :meth:`act` (from
-    features) and ``forward`` (from observations) return ``sample(features)`` if deterministic, else
-    ``add_exploration_noise(sample(features, draw_noise(features)))``. Takes the arguments of SB3's SAC ``Actor`` but
-    those of gSDE (``net_arch``: the network's hidden layer sizes).
+    Base of the actors: :meth:`sample` maps state features and noise to actions in [-1, 1], differentiably in the
+    network (``noise=None``, the noise's mean: the deterministic action); :meth:`act` and ``forward`` add
+    :meth:`add_exploration_noise` to stochastic actions. Takes the arguments of SB3's SAC ``Actor`` but gSDE's.
     """
 
     action_space: spaces.Box
@@ -128,10 +125,7 @@ class GenerativeActor(Actor):
 
 
 class EnsembleLinear(nn.Module):
-    """
-    The layers ``linears`` (with biases, all of one shape) applied in one batched product:
-    ``y[j] = x[j] @ weight[j] + bias[j]``, with a copy of their weights.
-    """
+    """Copies of the ``linears`` (with biases, of one shape) in one batched product: ``y[j] = x[j] @ weight[j] + bias[j]``."""
 
     def __init__(self, linears: list[nn.Linear]):
         super().__init__()
@@ -152,8 +146,7 @@ class EnsembleLinear(nn.Module):
 
 
 class EnsembleLayerNorm(nn.Module):
-    """``LayerNorm`` of ``num_features`` over the last dimension with an affine transform of its own for each of
-    ``n_members`` members (critics)."""
+    """``LayerNorm`` of ``num_features`` over the last dimension, with an affine transform per member (critic)."""
 
     def __init__(self, n_members: int, num_features: int, eps: float = 1e-5):
         super().__init__()
@@ -171,11 +164,8 @@ class EnsembleLayerNorm(nn.Module):
 
 
 class EnsembleBatchRenorm(nn.Module):
-    """
-    Batch renormalisation (Ioffe 2017) of ``num_features`` with running statistics and an affine transform of its own
-    for each of ``n_members`` members: the computation of sb3-contrib's ``BatchRenorm1d`` (CrossQ's, with the same
-    arguments), member by member.
-    """
+    """Batch renormalisation (Ioffe 2017) with running statistics and an affine transform per member: sb3-contrib's
+    ``BatchRenorm1d`` (CrossQ's, the same arguments) member by member."""
 
     ra_mean: th.Tensor
     ra_var: th.Tensor
@@ -227,26 +217,21 @@ class EnsembleBatchRenorm(nn.Module):
 
 
 def ensemble_of(modules: list[nn.Module]) -> nn.Module:
-    """
-    The ensemble layer of the same layer of each member network: :class:`EnsembleLinear` of ``nn.Linear`` layers,
-    else the first module (an ensemble normalisation layer, built for all the members, or an activation).
-    """
+    """The ensemble layer of one layer of each member: :class:`EnsembleLinear` of ``nn.Linear`` layers, else the first
+    module (an ensemble normalisation layer, built for all the members, or an activation)."""
     first = modules[0]
     if type(first) is nn.Linear:
         return EnsembleLinear(modules)  # type: ignore[arg-type]
-    if not isinstance(first, (EnsembleLayerNorm, EnsembleBatchRenorm)) and any(
-        True for _ in (*first.parameters(), *first.buffers())
-    ):
+    if not isinstance(first, (EnsembleLayerNorm, EnsembleBatchRenorm)) and [*first.parameters(), *first.buffers()]:
         raise ValueError(f"No ensemble version of {type(first).__name__}: critics are built of Linear layers and activations")
     return first
 
 
 class EnsembleCritic(BaseModel):
     """
-    ``n_critics`` Q-networks ``Q_j(s, a) = MLP_j(concat(features(s), a))`` run as one ensemble network
-    (:attr:`ensemble`: :class:`EnsembleLinear` layers with activations between them, normalisation layers in the
-    subclasses). Same arguments as SB3's ``ContinuousCritic``; calling it returns one ``(batch, 1)`` tensor per critic
-    as that does, :meth:`q_values` returns them stacked.
+    ``n_critics`` Q-networks ``Q_j(s, a) = MLP_j(concat(features(s), a))`` run as one network (:attr:`ensemble`).
+    Same arguments as SB3's ``ContinuousCritic``; calling it returns one ``(batch, 1)`` tensor per critic as that
+    does, :meth:`q_values` returns them stacked.
     """
 
     features_extractor: BaseFeaturesExtractor
@@ -296,20 +281,16 @@ class EnsembleCritic(BaseModel):
 
 
 class LayerNormCritic(EnsembleCritic):
-    """
-    Ensemble critics with ``LayerNorm`` after every hidden linear layer (before the activation), as in the critics
-    of BRO, SimBa and FlowRL. Same arguments as :class:`EnsembleCritic`.
-    """
+    """:class:`EnsembleCritic` with ``LayerNorm`` after every hidden linear layer (before the activation), as BRO's."""
 
     post_linear_modules = (EnsembleLayerNorm,)
 
 
 class BatchRenormCritic(EnsembleCritic):
     """
-    Ensemble critics with CrossQ's batch renormalisation (:class:`EnsembleBatchRenorm`, momentum 0.01) before every
-    linear layer. The layers normalise with the running statistics except while :meth:`set_bn_training_mode` has
-    them in training mode: the algorithm turns that on only for the critic update's joint forward pass over
-    ``(s, a)`` and ``(s', a')``. Same arguments as :class:`EnsembleCritic`.
+    :class:`EnsembleCritic` with CrossQ's batch renormalisation before every linear layer, normalising with the
+    running statistics except while :meth:`set_bn_training_mode` is on (the critic loss's joint pass over
+    ``(s, a)`` and ``(s', a')``).
     """
 
     pre_linear_modules = (EnsembleBatchRenorm,)
@@ -324,8 +305,7 @@ class BatchRenormCritic(EnsembleCritic):
         self.set_bn_training_mode(False)
 
     def set_bn_training_mode(self, mode: bool) -> None:
-        """:param mode: Normalise with the batch's statistics and update the running ones (``True``), or normalise with
-        the running statistics (``False``)"""
+        """:param mode: ``True``: normalise with the batch's statistics, updating the running ones; ``False``: with the latter"""
         for module in self.modules():
             if isinstance(module, EnsembleBatchRenorm):
                 module.train(mode)
@@ -366,11 +346,9 @@ def twin_critic_loss(
 
 def _cat_observations(first: PyTorchObs, second: PyTorchObs) -> PyTorchObs:
     """Two batches of observations (tensors, or dicts of tensors) as one."""
-    if isinstance(first, dict):
-        assert isinstance(second, dict)
+    if isinstance(first, dict) and isinstance(second, dict):
         return {key: th.cat([first[key], second[key]], dim=0) for key in first}
-    assert isinstance(first, th.Tensor) and isinstance(second, th.Tensor)
-    return th.cat([first, second], dim=0)
+    return th.cat([first, second], dim=0)  # type: ignore[list-item]
 
 
 class TwinCriticPolicy(BasePolicy):
@@ -446,13 +424,11 @@ class TwinCriticPolicy(BasePolicy):
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
+        optimizer_kwargs = dict(lr=lr_schedule(1), **self.optimizer_kwargs)
         self.actor = self.make_actor()
-        self.actor.optimizer = self.optimizer_class(
-            # the temperature log α, a parameter of generative actors, has the algorithm's optimizer
-            [param for name, param in self.actor.named_parameters() if name != "log_alpha"],
-            lr=lr_schedule(1),  # type: ignore[call-arg]
-            **self.optimizer_kwargs,
-        )
+        # The temperature log α, a parameter of generative actors, has the algorithm's optimizer
+        actor_parameters = [param for name, param in self.actor.named_parameters() if name != "log_alpha"]
+        self.actor.optimizer = self.optimizer_class(actor_parameters, **optimizer_kwargs)
         if self.share_features_extractor:
             self.critic = self.make_critic(features_extractor=self.actor.features_extractor)
             # The shared features extractor is trained by the actor loss only
@@ -463,11 +439,7 @@ class TwinCriticPolicy(BasePolicy):
         # The target critics have a features extractor of their own, and stay in evaluation mode
         self.critic_target = self.make_critic(features_extractor=None)
         self.critic_target.load_state_dict(self.critic.state_dict())
-        self.critic.optimizer = self.optimizer_class(
-            critic_parameters,
-            lr=lr_schedule(1),  # type: ignore[call-arg]
-            **self.optimizer_kwargs,
-        )
+        self.critic.optimizer = self.optimizer_class(critic_parameters, **optimizer_kwargs)
         self.critic_target.set_training_mode(False)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
@@ -502,8 +474,7 @@ class TwinCriticPolicy(BasePolicy):
         return self.actor(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
-        """Put the policy in training or evaluation mode; nothing is done when the actor and the critic are already in
-        that mode (``predict()`` calls this before every action)."""
+        """Put the policy in training or evaluation mode; nothing to do if already in it (``predict()`` calls this often)."""
         if self.training == self.actor.training == self.critic.training == mode:
             return
         self.actor.set_training_mode(mode)

@@ -48,11 +48,9 @@ def frozen(parameters: Iterable[th.nn.Parameter]) -> Iterator[None]:
 
 class TwinCriticAlgorithm(TwinCriticPersistence):
     """
-    Base of the algorithms of this package: an actor ``policy.actor`` that samples actions in [-1, 1], twin critics
-    ``policy.critic`` with targets ``policy.critic_target``, and a temperature ``α`` (``ent_coef``) fixed or learned
-    towards ``target_entropy``, updated with the actor every ``policy_delay`` critic updates. It holds what the
-    algorithms share: the checks (hyper-parameters, observations, non-finite losses), the temperature, ``train()``'s
-    loop over the subclass's :meth:`_update`, the Polyak update of the targets, and ``learn()``'s final logs.
+    Base of the algorithms: an actor with actions in [-1, 1], twin critics with targets, and a temperature ``α``
+    (``ent_coef``) fixed or learned towards ``target_entropy``. It holds the checks (hyper-parameters, observations,
+    non-finite losses), the temperature, ``train()``'s loop over the subclass's :meth:`_update` and the target update.
     """
 
     #: Valid values of the numeric hyper-parameters: name -> rule. The value checked is the entry of
@@ -134,8 +132,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         self.ent_coef_optimizer = th.optim.Adam([self.log_alpha], lr=learning_rate) if isinstance(self.ent_coef, str) else None
 
     def _update_temperature(self, entropy: float) -> float:
-        """One step of ``log α`` on SAC's temperature loss ``J(α) = log α (H - H_target)``, ``H`` the ``entropy``
-        estimate (``α`` shrinks while the policy is more random than the target); returns ``J(α)`` after the step."""
+        """One step of ``log α`` on SAC's ``J(α) = log α (H - H_target)``, ``H`` the ``entropy``; returns ``J(α)`` after it."""
         assert self.ent_coef_optimizer is not None
         ent_coef_loss = self.log_alpha * (entropy - float(self.target_entropy))
         self.ent_coef_optimizer.zero_grad()
@@ -178,7 +175,7 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
 
     def _update_targets(self) -> None:
         """Polyak update of the target critics: ``Q̄ <- (1 - τ) Q̄ + τ Q`` (none with CrossQ's critics)."""
-        if isinstance(self.critic, BatchRenormCritic):  # CrossQ's critics have no target networks
+        if isinstance(self.critic, BatchRenormCritic):
             return
         polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
         # Copy running stats, see GH issue #996
@@ -256,11 +253,8 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfTwinCriticAlgorithm:
-        """
-        See :meth:`OffPolicyAlgorithm.learn`; the TensorBoard run is named after the algorithm by default. Unlike SB3,
-        the values logged since the last dump are written when ``learn()`` returns, and a run without any gradient
-        step warns.
-        """
+        """See :meth:`OffPolicyAlgorithm.learn` (TensorBoard run named after the algorithm); unlike SB3, the values logged
+        since the last dump are written when it returns, and a run without any gradient step warns."""
         n_updates = self._n_updates
         super().learn(
             total_timesteps=total_timesteps,

@@ -47,10 +47,8 @@ def integer_at_least(minimum: int, valid_range: str | None = None) -> Hyperparam
 
 
 def made_env(env: GymEnv | str | None, algorithm: str, verbose: int) -> GymEnv | None:
-    """
-    The environment SB3 makes of ``env`` (``None`` stays ``None``), with a clear error (naming ``algorithm``) unless its
-    action space is a bounded ``Box``, the only kind a flow or diffusion policy can generate and rescale.
-    """
+    """The environment SB3 makes of ``env`` (``None`` stays ``None``); an error naming ``algorithm`` unless its action
+    space is a bounded ``Box``, the only kind a flow or diffusion policy can generate and rescale."""
     if env is None:
         return None
     env = maybe_make_env(env, verbose)
@@ -79,11 +77,8 @@ def resolve_target_entropy(target_entropy: Any, auto: float) -> float:
 
 
 def initial_ent_coef(ent_coef: Any, auto: float, valid_values: str) -> float:
-    """
-    The initial temperature ``α`` that SB3's ``ent_coef`` asks for: ``auto`` for ``"auto"`` (learned), ``x`` for
-    ``"auto_x"`` (learned, from ``x > 0``), the number itself for a number ``>= 0`` (fixed); else a ``ValueError``
-    ending with ``valid_values``.
-    """
+    """The initial ``α`` of SB3's ``ent_coef``: ``auto`` for ``"auto"``, ``x`` for ``"auto_x"`` (``x > 0``), a number
+    ``>= 0`` itself (fixed); else a ``ValueError`` ending with ``valid_values``."""
     error = ValueError(f"Invalid ent_coef={ent_coef!r}: it must be {valid_values}")
     if isinstance(ent_coef, str):
         if ent_coef == "auto":

@@ -24,11 +24,8 @@ def _table(array: np.ndarray, rows: tuple[int, int, int]) -> np.ndarray:
 
 
 class MaskedRowsRunningMeanStd(RunningMeanStd):
-    """
-    SB3's running mean and variance of a flat observation of shape ``shape``, whose table of ``rows`` (see
-    :class:`MaskedVecNormalize`) gets the statistics of the present rows (mask > 0.5) pooled over the rows: entry
-    ``start + i * size + j`` has those of feature ``j``, kept in ``row_rms``.
-    """
+    """SB3's running mean and variance of flat observations whose table of ``rows`` (see :class:`MaskedVecNormalize`)
+    has the statistics of the present rows (mask > 0.5) pooled over the rows, feature by feature (``row_rms``)."""
 
     def __init__(self, shape: tuple[int, ...], rows: tuple[int, int, int], epsilon: float = 1e-4):
         super().__init__(epsilon=epsilon, shape=shape)

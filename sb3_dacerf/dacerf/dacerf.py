@@ -157,11 +157,10 @@ class DACERF(TwinCriticAlgorithm):
 
     def actor_loss_terms(self, replay_data: Any) -> dict[str, th.Tensor]:
         """
-        The two terms of the actor loss ``J_F`` on a replay batch (Algorithm 2): ``improvement_term``
-        (``mean(-Q(s, π(s)) / κ)``) and ``imitation_term`` (``mean(λ_f ||v - (a* - a_0)||²)``), both differentiable
-        with respect to the actor, and what they are made of (detached): ``kappa``, ``lambda_f``, ``flow_error``,
-        ``q_values_star``, ``q_values_buffer``, the state ``features`` and the flow-matching ``targets``. Every Q is
-        ``min(Q_1, Q_2)``; :func:`actor_loss_weights` gives ``κ`` and ``λ_f``.
+        The two terms of the actor loss ``J_F`` on a replay batch (Algorithm 2), differentiable in the actor:
+        ``improvement_term`` ``mean(-Q(s, π(s)) / κ)`` and ``imitation_term`` ``mean(λ_f ||v - (a* - a_0)||²)``
+        (``Q = min(Q_1, Q_2)``, :func:`actor_loss_weights`); and, detached, ``kappa``, ``lambda_f``, ``flow_error``,
+        ``q_values_star``, ``q_values_buffer``, the state ``features`` and the flow-matching ``targets``.
         """
         observations, actions_buffer = replay_data.observations, replay_data.actions
         with frozen(self._critic_parameters()):
@@ -260,10 +259,9 @@ class DACERF(TwinCriticAlgorithm):
         return entropy, action_spread
 
 
-#: The paper's settings (its table "Training hyper-parameters"), for ``DACERF(..., **PAPER_HYPERPARAMETERS)``, with its
-#: data regime of 200 transitions per gradient step (with ``n_envs`` environments use
-#: ``sb3_dacerf.common.regime.steps_per_gradient_kwargs(200, n_envs)``). Not given by the paper: RAD's ``zeta`` and
-#: the critics.
+#: The paper's settings (its table "Training hyper-parameters") for ``DACERF(..., **PAPER_HYPERPARAMETERS)``, with its 200
+#: transitions per gradient step (``n_envs`` environments: ``steps_per_gradient_kwargs(200, n_envs)`` of
+#: :mod:`sb3_dacerf.common.regime`). Not from the paper: RAD's ``zeta`` and the critics.
 PAPER_HYPERPARAMETERS: dict[str, Any] = dict(
     learning_rate=1e-4,
     batch_size=512,
@@ -304,9 +302,8 @@ def langevin_targets(
     :return: The optimised actions ``a*``, detached
     """
     # ξ of every step, drawn at once and scaled by sqrt(2 η α)
-    noise = th.randn((n_steps, *actions.shape), device=actions.device, dtype=actions.dtype).mul_(
-        (2.0 * step_size * temperature) ** 0.5
-    )
+    noise_scale = (2.0 * step_size * temperature) ** 0.5
+    noise = th.randn((n_steps, *actions.shape), device=actions.device, dtype=actions.dtype).mul_(noise_scale)
     action = actions.detach()  # a <- a_B
     for step in range(n_steps):
         gradient = action_gradient(action)  # ∇_a Q(s, a)
@@ -323,10 +320,9 @@ def flow_matching_loss(
     time: th.Tensor | None = None,
 ) -> th.Tensor:
     """
-    Conditional flow matching towards ``targets`` ``a*`` on the straight path ``a_t = (1 - t) a_0 + t a*``: the error
-    ``||v(a_t, t) - (a* - a_0)||²`` of each sample ``(batch, 1)``, ``velocity`` mapping ``(a_t, t)`` to ``v(s, a_t, t)``
-    (the states bound inside it), ``a_0`` the ``noise`` (``N(0, I)`` draws by default) and ``t`` the ``time``
-    (``U[0, 1]`` draws by default).
+    Conditional flow matching towards ``targets`` ``a*`` on the path ``a_t = (1 - t) a_0 + t a*``: each sample's error
+    ``||v(a_t, t) - (a* - a_0)||²`` ``(batch, 1)``, ``velocity`` mapping ``(a_t, t)`` to ``v(s, a_t, t)``, ``a_0``
+    the ``noise`` and ``t`` the ``time`` (``N(0, I)`` and ``U[0, 1]`` draws by default).
     """
     noise = th.randn_like(targets) if noise is None else noise
     time = th.rand((targets.shape[0], 1), device=targets.device, dtype=targets.dtype) if time is None else time

@@ -18,12 +18,9 @@ from sb3_dacerf.common.policies import (
 
 class FlowActor(GenerativeActor):
     """
-    Flow-matching actor of DACER-F: a velocity field ``v_θ(s, a_t, t)`` (:attr:`network`) and its Euler sampler,
-    which integrates ``da/dt = v_θ(s, a, t)`` from ``a_0`` at ``t = 0`` to ``t = 1`` in ``n_sampling_steps`` steps,
-    then clips to [-1, 1]. ``deterministic=True`` starts from the prior's mean ``a_0 = 0``. No exploration noise
-    until the algorithm sets ``log_alpha``.
-
-    Takes the arguments of :class:`~sb3_dacerf.common.policies.GenerativeActor`, and:
+    Flow-matching actor of DACER-F: a velocity field ``v_θ(s, a_t, t)`` (:attr:`network`) whose Euler sampler
+    integrates ``da/dt = v_θ(s, a, t)`` from ``a_0`` (``0`` if deterministic) at ``t = 0`` to ``t = 1``, then clips
+    to [-1, 1]. Takes the arguments of :class:`~sb3_dacerf.common.policies.GenerativeActor`, and:
 
     :param n_sampling_steps: Number of Euler steps from noise to action
     """
@@ -210,9 +207,8 @@ def written_out_layers(critic: EnsembleCritic) -> tuple[list[_Block], tuple[th.T
             layers[-1][3] = module
         else:
             raise _unsupported(critic)
-    if len(layers) < 2 or layers[-1][2:] != [None, None] or layers[-1][0].shape[2] != 1 or pending is not None:
-        raise _unsupported(critic)
-    if any(layer[3] is None for layer in layers[:-1]):
+    output_ok = len(layers) >= 2 and layers[-1][2:] == [None, None] and layers[-1][0].shape[2] == 1 and pending is None
+    if not output_ok or any(layer[3] is None for layer in layers[:-1]):
         raise _unsupported(critic)
     return [tuple(layer) for layer in layers[:-1]], (layers[-1][0], layers[-1][1])  # type: ignore[misc]
 

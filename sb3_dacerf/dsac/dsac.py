@@ -31,10 +31,9 @@ def distributional_targets(
     normals: Sequence[th.Tensor],
 ) -> tuple[th.Tensor, th.Tensor]:
     """
-    DSAC-T's two targets from the target critics' distributions ``next_distributions``, ``(Q̄_j, σ̄_j)`` at
-    ``(s', a')``: with ``j*`` the critic of the smaller mean, ``y = r + γ' (Q̄_j* - α log π̄(a'|s'))`` and the sampled
-    ``y_z = r + γ' (Q̄_j* + clip(z_j*, -3, 3) σ̄_j* - α log π̄(a'|s'))``, ``γ' = γ (1 - done)`` (``discounts``),
-    ``z_j`` the standard normal draws ``normals``; every tensor ``(batch, 1)``.
+    DSAC-T's targets from the target critics' ``(Q̄_j, σ̄_j)`` at ``(s', a')`` (``next_distributions``), ``j*`` the
+    critic of the smaller mean, ``γ' = γ (1 - done)`` (``discounts``), ``z_j`` the ``normals``, all ``(batch, 1)``:
+    ``y = r + γ' (Q̄_j* - α log π̄(a'|s'))`` and ``y_z = r + γ' (Q̄_j* + clip(z_j*, -3, 3) σ̄_j* - α log π̄(a'|s'))``.
     """
     (mean_1, std_1), (mean_2, std_2) = next_distributions
     sample_1 = mean_1 + normals[0].clamp(-SAMPLE_CLIP, SAMPLE_CLIP) * std_1

@@ -75,9 +75,8 @@ class GaussianActor(Actor):
 class GaussianCritic(BaseModel):
     """
     Twin distributional critics of DSAC: each network ``qf<j>`` outputs the mean ``Q(s, a)`` and the standard
-    deviation ``σ(s, a) = softplus(·)`` of a Gaussian return (the authors' ``ActionValueDistri``). Called like SB3's
-    ``ContinuousCritic`` it returns the means; :meth:`distributions` returns the means and the standard deviations.
-    Same arguments as SB3's ``ContinuousCritic``, and:
+    deviation ``σ(s, a) = softplus(·)`` of a Gaussian return (the authors' ``ActionValueDistri``). Called, it returns
+    the means; :meth:`distributions` also the standard deviations. Same arguments as SB3's ``ContinuousCritic``, and:
 
     :param layer_norm: ``LayerNorm`` after every hidden linear layer (before the activation)
     """

@@ -160,10 +160,8 @@ class ExportableFlowPolicy(ExportablePolicy):
 
 
 class ExportableDiffusionPolicy(ExportablePolicy):
-    """
-    DACER: the ``n_diffusion_steps`` reverse steps of ``DiffusionActor.sample``, unrolled, the time embeddings'
-    terms constants of the graph.
-    """
+    """DACER: the ``n_diffusion_steps`` reverse steps of ``DiffusionActor.sample``, unrolled, with the time embeddings'
+    terms as constants."""
 
     actor: DiffusionActor
     time_terms: th.Tensor
@@ -207,10 +205,8 @@ class ExportableGaussianPolicy(ExportablePolicy):
 
 
 class _FlaggedPolicy(nn.Module):
-    """
-    The ONNX graph, which cannot raise: ``(action, finite)``, ``finite[i]`` false and ``action[i]`` NaN where
-    observation ``i`` has a NaN or infinite entry.
-    """
+    """The ONNX graph, which cannot raise: ``(action, finite)``, ``finite[i]`` false and ``action[i]`` NaN where
+    observation ``i`` has a NaN or infinite entry."""
 
     def __init__(self, policy: ExportablePolicy):
         super().__init__()
@@ -319,10 +315,8 @@ def _finite_dict(obs: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
 
 
 class _Scripted(nn.Module):
-    """
-    TorchScript entry point: the graph traced without the noise (zeros) or the one traced with it; a ``ValueError``
-    for non-finite observations. The subclasses differ in the observation's type and the noise's name.
-    """
+    """TorchScript entry point: the graph traced without the noise or the one traced with it; a ``ValueError`` for
+    non-finite observations. The subclasses differ in the observation's type and the noise's name."""
 
     def __init__(self, deterministic: th.jit.ScriptModule, stochastic: th.jit.ScriptModule):
         super().__init__()
