@@ -23,7 +23,7 @@ ZOO_MODULES = frozenset({"rl_zoo3.utils", "rl_zoo3.hyperparams_opt", "rl_zoo3.ex
 
 
 class _RegisteringLoader:
-    """Runs the module with its own loader, then lets ``sb3_dacerf.zoo`` register DACERF and DACER in it."""
+    """Runs the module with its own loader, then lets ``sb3_dacerf.zoo`` register DACERF, DACER and DSAC in it."""
 
     def __init__(self, loader: "Any") -> None:
         self.loader = loader
