@@ -109,7 +109,7 @@ class GaussianCritic(BaseModel):
         ]
         for idx, q_net in enumerate(networks):
             self.add_module(f"qf{idx}", q_net)
-        self.q_networks = nn.ModuleList(networks)
+        self.q_networks = networks  # a list, as SB3's ContinuousCritic: the networks are saved once, as qf<j>
 
     def distributions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[tuple[th.Tensor, th.Tensor], ...]:
         """One ``(mean, std)`` pair per network, each ``(batch, 1)``, at observations and actions in [-1, 1]."""
