@@ -21,8 +21,9 @@ A checkpoint is the folder ``<out>/checkpoints/<env>/<variant>-seed<N>/`` (``mod
 
 When STEM's folder has a ``SHA256SUMS`` (``examples/models/``), the checksums of the written files are updated in it.
 
-The environment id and its ``gym.make`` keyword arguments (``density``, ``config``) are read from the environment
-pickled in the checkpoint (its ``spec``), else from the folder's path; the algorithm from the policy class saved in
+The environment id and its ``gym.make`` keyword arguments (``density``, ``config``, less the keys every evaluation
+sets: ``evaluate_driving.evaluation_config``) are read from the environment pickled in the checkpoint (its ``spec``),
+else from the folder's path; the algorithm from the policy class saved in
 the model. ``--env``, ``--env-kwargs`` and ``--algo`` override them. The exported files are loaded back once with
 ``evaluate_driving.load_driver`` before the command ends, so an export that would not evaluate fails here.
 
@@ -47,6 +48,7 @@ from evaluate_driving import (  # noqa: E402
     ALGORITHMS,
     SCENARIOS,
     algorithm_names,
+    evaluation_config,
     load_algorithm,
     load_driver,
     model_paths,
@@ -121,10 +123,10 @@ def checkpoint_environment(
     if env_kwargs is None:
         env_kwargs = {k: v for k, v in (spec.kwargs if spec is not None else {}).items() if k != "render_mode"}
         config = env_kwargs.get("config") or {}
-        training_only = sorted(set(config) & getattr(getattr(env, "unwrapped", None), "TRAINING_ONLY_CONFIG", frozenset()))
-        if training_only:
-            env_kwargs["config"] = {k: v for k, v in config.items() if k not in training_only}
-            print(f"note: the training-only config key(s) {training_only} are left out of the exported metadata")
+        evaluated = sorted(set(config) & set(evaluation_config(env_id)))
+        if evaluated:
+            env_kwargs["config"] = {k: v for k, v in config.items() if k not in evaluated}
+            print(f"note: the config key(s) {evaluated} are left out of the exported metadata (evaluations set them)")
     unknown = set(env_kwargs) - {"density", "config"}
     if unknown:
         sys.exit(

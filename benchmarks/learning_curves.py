@@ -17,7 +17,8 @@ comparisons can be run in pieces (one variant or seed range at a time) and ``--r
 Environment ids registered by ``sb3_dacerf`` (driving, DMC) work too; for environments whose ``info`` carries
 ``is_success`` / ``collision`` / ``off_road`` the arrival, collision and off-road rates of the evaluation
 episodes are reported as well. ``--env-kwargs`` go to ``gym.make`` of every env, ``--train-env-kwargs`` to the
-training env's only (a training aid such as the intersection's exploring starts, with evaluations left as they are).
+training env's only. Evaluations run under the env's evaluation config, which ``--env-kwargs`` may override: at the
+intersection from the standard starts (``reference_start_probability`` 0), while training keeps the default 0.5.
 ``--env-kwargs '{"density": "random"}'`` draws each driving episode's traffic density (training and evaluations),
 ``--train-env-kwargs`` the training episodes' only; ``--vec-normalize masked`` normalises the observations with
 :class:`sb3_dacerf.common.vec_normalize.MaskedVecNormalize`, whose empty vehicle rows stay zeros at any density.
@@ -55,6 +56,8 @@ from typing import Any
 
 import _checkout  # the repository's sb3_dacerf, not an installed copy; its ROOT names the commit
 import numpy as np
+
+sys.path.append(str(_checkout.ROOT / "examples"))  # evaluate_driving's evaluation_config
 
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # name: (algorithm, constructor kwargs); "action_noise_std" becomes a NormalActionNoise
@@ -281,12 +284,23 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
 def training_env_kwargs(env_kwargs: dict[str, Any], train_env_kwargs: dict[str, Any]) -> dict[str, Any]:
     """
     The ``gym.make`` keyword arguments of the training env: ``env_kwargs`` updated by ``train_env_kwargs``, the two
-    ``config`` dicts merged key by key (a training-only config key such as exploring starts keeps the shared ones).
+    ``config`` dicts merged key by key (a training-only config key keeps the shared ones).
     """
     merged = {**env_kwargs, **train_env_kwargs}
     if "config" in env_kwargs and "config" in train_env_kwargs:
         merged["config"] = {**env_kwargs["config"], **train_env_kwargs["config"]}
     return merged
+
+
+def evaluation_env_kwargs(env_id: str, env_kwargs: dict[str, Any]) -> dict[str, Any]:
+    """
+    The ``gym.make`` keyword arguments of the evaluation env: ``env_kwargs`` over the env's evaluation config
+    (``evaluate_driving.evaluation_config``: the intersection's standard starts), ``config`` key by key.
+    """
+    from evaluate_driving import evaluation_config
+
+    config = evaluation_config(env_id, config=env_kwargs.get("config"))
+    return {**env_kwargs, "config": config} if config else env_kwargs
 
 
 def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> Any:
@@ -400,7 +414,7 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
         kwargs = paper_kwargs(job, kwargs)
     if job.get("learning_starts") is not None:
         kwargs["learning_starts"] = job["learning_starts"]
-    eval_env = gym.make(job["env"], **job["env_kwargs"])
+    eval_env = gym.make(job["env"], **evaluation_env_kwargs(job["env"], job["env_kwargs"]))
     folder = checkpoint_dir(out, job["env"], job["variant"], job["seed"])
     rows: list[dict[str, Any]] = []
     elapsed = 0.0
@@ -643,7 +657,8 @@ def main() -> None:
         type=json.loads,
         default={},
         help="keyword arguments of gym.make for the training env only, merged over --env-kwargs (config keys one by "
-        'one), e.g. \'{"config": {"reference_start_probability": 0.5}}\': evaluations keep --env-kwargs',
+        'one), e.g. \'{"config": {"reference_start_probability": 0}}\' (the intersection\'s standard starts, as '
+        "evaluations have them): evaluations keep --env-kwargs",
     )
     parser.add_argument("--out", help="results folder (default: benchmarks/results, with --quick benchmarks/results/quick)")
     parser.add_argument("--first-seed", type=int, default=0, help="seeds are first-seed .. first-seed + seeds - 1")

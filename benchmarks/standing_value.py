@@ -10,8 +10,9 @@ For each seeded episode this plays two policies from the same start:
 
 and prints, per density and route, the mean discounted values (``--gamma``), the scripted driver's outcomes, how often
 it is worth more than standing, and the break-even crash rate: the share of crashes at which an attempt (the scripted
-driver's arrivals and crashes mixed in that proportion) is worth as much as standing. Any config key can be set with
-``--config`` (e.g. the severe-event penalty)::
+driver's arrivals and crashes mixed in that proportion) is worth as much as standing. Episodes start from the
+evaluations' starts (``evaluate_driving.evaluation_config``). Any config key can be set with ``--config`` (e.g. the
+severe-event penalty)::
 
     python benchmarks/standing_value.py --episodes 50 --density sparse normal dense
     python benchmarks/standing_value.py --episodes 50 --config '{"collision_penalty": "dynamic", "yield_at_junction": false}'
@@ -21,14 +22,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections import defaultdict
 
-import _checkout  # noqa: F401  (the repository's sb3_dacerf, not an installed copy)
+import _checkout  # the repository's sb3_dacerf, not an installed copy
 import gymnasium as gym
 import numpy as np
 
 import sb3_dacerf  # noqa: F401  (registers the ids)
 from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+sys.path.append(str(_checkout.ROOT / "examples"))  # evaluate_driving.py
+from evaluate_driving import evaluation_config
 
 BRAKE = np.array([-1.0, 0.0], dtype=np.float32)
 
@@ -89,7 +94,7 @@ def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float
     )
     print("|---|---|---|---|---|---|---|---|")
     for density in args.density:
-        env = gym.make(args.env, config=args.config, density=density)
+        env = gym.make(args.env, config=evaluation_config(args.env, config=args.config), density=density)
         rows: dict[str, list[tuple[float, float, bool, bool]]] = defaultdict(list)
         for seed in range(args.seed, args.seed + args.episodes):
             stand = standing_value(env, seed, args.gamma, args.stand_steps)

@@ -33,7 +33,8 @@ same three files from a ``benchmarks/learning_curves.py`` checkpoint (the format
 
 Arrival is ``info["is_success"]``: the route's exit reached at the intersection, the time limit reached without
 collision or leaving the road on the highway. Evaluation seeds default to 10,000 + i, which training resets never
-use.
+use. Episodes start from the scenario's standard starts whatever the model trained on (``evaluation_config``: at the
+intersection ``reference_start_probability`` 0, 20-40 m before the junction); ``--config`` can still set the key.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.envs.registration import load_env_creator
 from stable_baselines3 import SAC
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
@@ -62,6 +64,18 @@ SCENARIOS = {"multilane": "DACERF-Multilane-v0", "intersection": "DACERF-Interse
 #: The algorithms the driving examples train and load, by the name ``--algo`` takes and the metadata's ``algo`` holds
 #: (``train_driving.py``, ``evaluate_driving.py``, ``render_driving.py``, ``benchmarks/export_driver.py``)
 ALGORITHMS: dict[str, type[OffPolicyAlgorithm]] = {"dacerf": DACERF, "dacer": DACER, "dsac": DSAC, "sac": SAC}
+
+
+def evaluation_config(env_id: str, trained: dict | None = None, config: dict | None = None) -> dict:
+    """
+    The config an evaluation of ``env_id`` runs under: the env class's ``EVALUATION_CONFIG`` (the intersection's
+    standard starts), then ``trained`` (the config the model trained with) without its keys, then ``config`` (explicit
+    overrides, which may set them: to evaluate from other starts on purpose). ``{}`` for an env without one.
+    """
+    entry_point = gym.spec(env_id).entry_point
+    env_class = load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
+    fixed = getattr(env_class, "EVALUATION_CONFIG", {})
+    return {**fixed, **{k: v for k, v in (trained or {}).items() if k not in fixed}, **(config or {})}
 
 
 def algorithm_names(conjunction: str = "or") -> str:
@@ -377,10 +391,11 @@ def load_driver(
     Load a saved driver with what was saved beside it (see ``model_paths``), and make its environment.
 
     Settings left at ``None`` come from the metadata JSON: the scenario, the algorithm (else the saved policy's), the
-    density (else ``normal``) and the config (``config`` overrides single keys of it). The statistics beside the
-    model (``_vecnormalize.json``) are used unless ``vec_normalize`` names another file. Every problem (missing file,
-    another scenario than the model's, a file of another class, spaces that do not match, a checksum that does not
-    match, a file that needs unpickling) exits with a message naming it.
+    density (else ``normal``) and the config, merged by ``evaluation_config`` (the evaluation's keys over it, then
+    ``config``'s single keys). The statistics beside the model (``_vecnormalize.json``) are used unless
+    ``vec_normalize`` names another file. Every problem (missing file, another scenario than the model's, a file of
+    another class, spaces that do not match, a checksum that does not match, a file that needs unpickling) exits with a
+    message naming it.
 
     :param model_path: the model .zip (the suffix may be left out)
     :param scenario: ``multilane``, ``intersection`` or an env id
@@ -389,7 +404,7 @@ def load_driver(
         (``.json``), or, with ``unsafe_run_code_from_file``, with ``VecNormalize.save`` (``.pkl``)
     :param density: ``sparse``, ``normal``, ``dense``, or a distribution to draw one per episode (``random``, a list,
         a dict of weights)
-    :param config: env config overrides
+    :param config: env config overrides (of the metadata's and of the evaluation's)
     :param force: allow another scenario than the one the model was trained on
     :param render_mode: of the environment, e.g. ``"rgb_array"``
     :param zero_empty_rows: give the empty vehicle rows zeros after normalisation (``--zero-empty-rows``); default:
@@ -431,7 +446,7 @@ def load_driver(
             f"leave out --env, or add --force to evaluate it on another scenario"
         )
     density = density or metadata.get("density", "normal")
-    config = {**metadata.get("config", {}), **(config or {})}
+    config = evaluation_config(env_id, metadata.get("config", {}), config)
     env = gym.make(env_id, density=density, config=config, render_mode=render_mode)
 
     model = load_model(paths, algo, metadata.get("algo"), unsafe_run_code_from_file)
@@ -530,7 +545,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         by_density = {}
         for density in densities:
             density = density or "normal"
-            env = gym.make(env_id, density=density, config=args.config or {})
+            env = gym.make(env_id, density=density, config=evaluation_config(env_id, config=args.config))
             print(f"{label}; {env_id} ({density}), {seeds}")
             results = evaluate(baseline_driver(kind, env), env, args.episodes, args.seed)
             if args.density != "all":

@@ -40,7 +40,7 @@ import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf.envs.driving.scripted import ScriptedDriver
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from evaluate_driving import ALGORITHMS, load_driver
+from evaluate_driving import ALGORITHMS, evaluation_config, load_driver
 
 SCENARIOS = {
     # Seeds picked where the scripted tracker completes the manoeuvre; frame times [s] (None: spread over the episode).
@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         runs.append((driver.env, driver.act, seed, name, None))
     else:
         for env_id, scenario in SCENARIOS.items():
-            env = gym.make(env_id, render_mode="rgb_array", config=scenario["config"])
+            env = gym.make(env_id, render_mode="rgb_array", config=evaluation_config(env_id, config=scenario["config"]))
             seed = scenario["seed"] if args.seed is None else args.seed
             times = scenario["times"] if args.seed is None else None
             runs.append((env, ScriptedDriver(env, yield_to_crossing=False), seed, scenario["name"], times))

@@ -18,6 +18,8 @@ at the intersection, time limit reached safely on the highway), collision and of
 from its reset seed, and the final evaluation's too; ``--vec-normalize masked`` normalises the observations with
 ``sb3_dacerf.common.vec_normalize.MaskedVecNormalize``, whose empty vehicle rows stay zeros whatever the number of
 vehicles (``--vec-normalize`` alone: SB3's ``VecNormalize``, with which the drivers of ``examples/models/`` trained).
+At the intersection half the training episodes start in the traffic flow (``reference_start_probability``, 0.5 by
+default), and the final evaluation starts from the standard starts (``evaluate_driving.evaluation_config``).
 
 ``--save NAME`` writes ``NAME_<scenario>.zip`` (the model), ``NAME_<scenario>.json`` (env id, density, config,
 algorithm: what ``evaluate_driving.py`` and ``--load`` read), ``NAME_<scenario>_vecnormalize.json`` with
@@ -73,6 +75,7 @@ from evaluate_driving import (
     ALGORITHMS,
     SCENARIOS,
     evaluate,
+    evaluation_config,
     format_results,
     load_algorithm,
     model_paths,
@@ -311,13 +314,12 @@ def main(argv: list[str] | None = None) -> None:
     vec_env = args.vec_env or ("subproc" if args.n_envs > 1 else "dummy")
     scenarios = SCENARIOS if args.env in (None, "all") else {args.env: SCENARIOS[args.env]}
     for name, env_id in scenarios.items():
-        env_kwargs = {"density": args.density, "config": args.config}
         # "module:id" makes spawned SubprocVecEnv workers import (and so register) the package.
         env = make_vec_env(
             f"sb3_dacerf:{env_id}",
             n_envs=args.n_envs,
             seed=args.seed,
-            env_kwargs=env_kwargs,
+            env_kwargs={"density": args.density, "config": args.config},
             vec_env_cls=SubprocVecEnv if vec_env == "subproc" else DummyVecEnv,
         )
         if load_paths and os.path.isfile(load_paths["vec_normalize"]):
@@ -364,10 +366,10 @@ def main(argv: list[str] | None = None) -> None:
             print(f"saved {paths['model']}" + (f" and {paths['vec_normalize']}" if vec_normalize is not None else ""), flush=True)
         if vec_normalize is not None:
             vec_normalize.training = False
-        # Evaluation episodes use seeds the training resets did not (training resets are seeded from --seed).
-        results = evaluate(
-            policy_act(model, vec_normalize), gym.make(env_id, **env_kwargs), args.eval_episodes, seed=10_000 + args.seed
-        )
+        # Evaluation episodes use seeds the training resets did not (training resets are seeded from --seed), from
+        # the standard starts (evaluation_config)
+        eval_env = gym.make(env_id, density=args.density, config=evaluation_config(env_id, args.config))
+        results = evaluate(policy_act(model, vec_normalize), eval_env, args.eval_episodes, seed=10_000 + args.seed)
         print(
             f"trained {model.num_timesteps} steps in total ({model._n_updates} gradient steps), {train_seconds:.0f} s "
             f"this run ({model._n_updates - first_update} gradient steps); " + format_results(env_id, results, args.eval_episodes)

@@ -10,6 +10,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import pytest
+from gymnasium.envs.registration import load_env_creator
 
 pytest.importorskip("highway_env")
 
@@ -27,6 +28,11 @@ ENV_IDS = ["DACERF-Multilane-v0", "DACERF-Intersection-v0"]
 PAPER_INCREMENT_LOW, PAPER_INCREMENT_HIGH = np.array([-0.4, -0.025]), np.array([0.25, 0.025])
 PAPER_COMMAND_BOUND = np.array([0.8, 0.571])
 OBS_SIZE = EGO_FEATURES + WAYPOINT_FEATURES * 10 + VEHICLE_FEATURES * 8
+
+
+def evaluation_config(env_id: str) -> dict:
+    """The env class's ``EVALUATION_CONFIG``: the config of the evaluations (the intersection's standard starts)."""
+    return load_env_creator(gym.spec(env_id).entry_point).EVALUATION_CONFIG
 
 
 def make(env_id: str, **config) -> gym.Env:
@@ -294,12 +300,27 @@ def test_exploring_start_on_the_reference_path():
         assert observation[4] == pytest.approx(ego.action["steering"])  # δ in the observation
         turning += abs(ego.action["steering"]) > 0.1
     assert turning >= 3 and past >= 2  # some episodes start inside a turn, some past the junction
-    # the default draws no exploring start: the first steps of a seeded episode do not change
-    default = gym.make("DACERF-Intersection-v0")
-    explored = gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 0.0})
-    assert np.array_equal(default.reset(seed=3)[0], explored.reset(seed=3)[0])
     with pytest.raises(ValueError, match="reference_start_probability"):
         gym.make("DACERF-Intersection-v0", config={"reference_start_probability": 1.5})
+
+
+def test_training_starts_in_the_traffic_flow_evaluations_before_the_junction():
+    """By default (0.5) some episodes start inside or past the junction; under EVALUATION_CONFIG (0) none do."""
+    assert evaluation_config("DACERF-Intersection-v0") == {"reference_start_probability": 0.0}
+    assert evaluation_config("DACERF-Multilane-v0") == {}
+    default = gym.make("DACERF-Intersection-v0")
+    evaluation = gym.make("DACERF-Intersection-v0", config=evaluation_config("DACERF-Intersection-v0"))
+    assert default.unwrapped.config["reference_start_probability"] == 0.5
+    approach_end = default.unwrapped.road.network.get_lane(("o0", "ir0", 0)).length
+
+    def start_progress(env: gym.Env, seed: int) -> float:
+        env.reset(seed=seed)
+        return env.unwrapped.scene.reference_progress
+
+    default_starts = np.array([start_progress(default, seed) for seed in range(20)])
+    evaluation_starts = np.array([start_progress(evaluation, seed) for seed in range(20)])
+    assert (default_starts > approach_end).sum() >= 3  # inside or past the junction
+    assert np.all((evaluation_starts >= approach_end - 40.5) & (evaluation_starts <= approach_end - 19.5))
 
 
 def test_highway_success_at_time_limit():
@@ -384,8 +405,9 @@ def test_environments_import_nothing_from_the_algorithms():
 
 
 def lone_intersection(route: str) -> tuple[gym.Env, Any]:
-    """An intersection episode on ``route`` with no traffic."""
-    env = gym.make("DACERF-Intersection-v0", config={"initial_vehicle_count": 0, "spawn_probability": 0.0, "routes": [route]})
+    """An intersection episode on ``route`` with no traffic, from a standard start before the junction."""
+    config = {"initial_vehicle_count": 0, "spawn_probability": 0.0, "routes": [route]}
+    env = gym.make("DACERF-Intersection-v0", config={**evaluation_config("DACERF-Intersection-v0"), **config})
     env.reset(seed=0)
     unwrapped = env.unwrapped
     unwrapped.road.vehicles = [unwrapped.vehicle]
@@ -734,12 +756,14 @@ def test_scripted_driver_takes_only_the_driving_envs():
 def left_turn_against_oncoming_car(driver_class, longitudinal: float, **driver_kwargs):
     """
     One left turn of the intersection with a single oncoming car (8 m/s, ``longitudinal`` m along the north arm's
-    entry lane, going straight on) and no other traffic: whether the ego crashed, arrived, and the episode's length.
+    entry lane, going straight on) and no other traffic, from a standard start: whether the ego crashed, arrived, and
+    the episode's length.
     """
     from highway_env.vehicle.behavior import IDMVehicle
 
     env = make(
         "DACERF-Intersection-v0",
+        **evaluation_config("DACERF-Intersection-v0"),
         duration=40,
         routes=["left"],
         initial_vehicle_count=0,
@@ -889,6 +913,7 @@ PINNED_PENALTY = {"collision_penalty": 200.0}
 # traffic-only crashes, lane priorities for the ego too, and routes drawn among all four; clear_crashed_traffic,
 # right_of_way, the yielding reference and the default routes have their own tests.
 PINNED_WRECKS = {"clear_crashed_traffic": False, "right_of_way": "priority", "yield_at_junction": False}
+# The episodes run under the evaluation config (record_episode), as recorded: the intersection's standard starts.
 ALL_ROUTES = {"routes": ["straight", "left", "right", "u_turn"]}
 PINNED_EPISODES = [
     # (env id, density, config overrides, seed, action pattern)
@@ -918,7 +943,7 @@ def short_floats(obs: np.ndarray) -> list[float]:
 
 def record_episode(env_id: str, density: str, config: dict, seed: int, pattern: str) -> dict:
     """One seeded episode: rewards and flags of every step, a weighted checksum of every observation, some observations."""
-    env = gym.make(env_id, density=density, config=config)
+    env = gym.make(env_id, density=density, config={**evaluation_config(env_id), **config})
     rng = np.random.default_rng(seed)
     obs, _ = env.reset(seed=seed)
     weights = np.linspace(1.0, 2.0, obs.size)

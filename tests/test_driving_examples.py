@@ -125,8 +125,8 @@ def test_evaluate_zero_increments(capsys):
     results = evaluate.main(args)
     assert capsys.readouterr().out.startswith("Zero increments; DACERF-Intersection-v0 (normal), seeds 10000-10001")
     assert results["episode_length"] >= 1 and evaluate.main(args) == results
-    # The same episodes as an env stepped with zero increments by hand
-    env = gym.make("DACERF-Intersection-v0", config=SHORT)
+    # The same episodes as an env stepped with zero increments by hand, from the standard starts
+    env = gym.make("DACERF-Intersection-v0", config={**SHORT, "reference_start_probability": 0.0})
     total = 0.0
     for seed in (10_000, 10_001):
         env.reset(seed=seed)
@@ -174,6 +174,31 @@ def test_shipped_drivers_load_and_drive(capsys):
         results = evaluate.main([stem, "--episodes", "1", "--config", json.dumps(SHORT)])
         assert results["episode_length"] >= 1 and np.isfinite(results["tar"])
         assert "observations normalised with" in capsys.readouterr().out
+
+
+def test_evaluations_start_from_the_standard_starts(tmp_path):
+    """
+    At the intersection an evaluation starts before the junction (EVALUATION_CONFIG) whatever the metadata's config
+    says: a driver trained from the traffic flow drives the same episodes as one without the key; --config still sets it.
+    """
+    import shutil
+
+    evaluate = load_example("evaluate_driving")
+    shipped, stem = os.path.join(EXAMPLES, "models", "dacerf_intersection"), str(tmp_path / "trained_in_the_flow")
+    for suffix in (".zip", "_vecnormalize.json"):
+        shutil.copy(shipped + suffix, stem + suffix)
+    with open(shipped + ".json") as file:
+        metadata = json.load(file)
+    assert "reference_start_probability" not in metadata["config"]
+    metadata["config"]["reference_start_probability"] = 0.5
+    with open(stem + ".json", "w") as file:
+        json.dump(metadata, file)
+    assert evaluate.load_driver(stem).env.unwrapped.config["reference_start_probability"] == 0.0
+    explicit = evaluate.load_driver(stem, config={"reference_start_probability": 1.0})
+    assert explicit.env.unwrapped.config["reference_start_probability"] == 1.0
+    args = ["--episodes", "2", "--config", json.dumps(SHORT)]
+    assert evaluate.main([stem, *args]) == evaluate.main([shipped, *args])
+    assert evaluate.evaluation_config("DACERF-Multilane-v0", {"duration": 5}, {"duration": 3}) == {"duration": 3}
 
 
 def test_train_on_drawn_densities_with_masked_normalisation_and_evaluate_at_each(tmp_path, capsys):
@@ -316,7 +341,7 @@ def test_train_at_steps_per_gradient(trained, tmp_path, capsys):
     assert "use --n-envs 1 and --vec-env dummy" in capsys.readouterr().err
 
 
-def test_train_with_demonstrations(tmp_path, capsys):
+def test_train_with_demonstrations(tmp_path, capsys, monkeypatch):
     """--demonstrations N: N scripted-driver transitions in the new model's buffer, beside its own --timesteps."""
     from stable_baselines3 import SAC
 
@@ -324,8 +349,17 @@ def test_train_with_demonstrations(tmp_path, capsys):
     save = str(tmp_path / "demo")
     args = ["--env", "intersection", "--algo", "sac", "--timesteps", "50", "--learning-starts", "10", "--batch-size", "16"]
     args += ["--config", json.dumps(SHORT), "--demonstrations", "40", "--eval-episodes", "1", "--log-interval", "0"]
+    evaluated_configs, evaluate = [], train.evaluate
+
+    def recording_evaluate(act, env, *args, **kwargs):
+        evaluated_configs.append(env.unwrapped.config)
+        return evaluate(act, env, *args, **kwargs)
+
+    monkeypatch.setattr(train, "evaluate", recording_evaluate)
     train.main([*args, "--save", save, "--save-replay-buffer"])
     assert "trained 50 steps in total" in capsys.readouterr().out
+    # trained from the traffic flow (the default), evaluated from the standard starts
+    assert evaluated_configs[0]["reference_start_probability"] == 0.0 and evaluated_configs[0]["duration"] == 3
     model = SAC.load(save + "_intersection.zip")
     model.load_replay_buffer(save + "_intersection_replay_buffer.pkl")
     assert model.replay_buffer.pos == 90
@@ -523,8 +557,8 @@ def test_standing_value_compares_standing_with_the_scripted_driver(capsys):
         standing_value.main(["--gamma", "1"])
 
 
-def test_export_leaves_out_training_only_config(tmp_path, capsys):
-    """A run trained with exploring starts exports a driver evaluated from the scenario's usual starts."""
+def test_export_leaves_out_the_evaluation_config(tmp_path, capsys):
+    """A run trained with starts from the traffic flow exports metadata without the key evaluations set."""
     import gymnasium as gym
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -533,7 +567,9 @@ def test_export_leaves_out_training_only_config(tmp_path, capsys):
     venv = DummyVecEnv([lambda: gym.make("DACERF-Intersection-v0", config=config)])
     env_id, env_kwargs = export.checkpoint_environment(tmp_path, {"venv": venv}, None, None)
     assert env_id == "DACERF-Intersection-v0" and env_kwargs["config"] == SHORT
-    assert "training-only config key(s) ['reference_start_probability'] are left out" in capsys.readouterr().out
+    assert "config key(s) ['reference_start_probability'] are left out of the exported metadata (evaluations set them)" in (
+        capsys.readouterr().out
+    )
 
 
 @pytest.mark.parametrize("algo", ["dacerf", "dacer", "dsac", "sac"])

@@ -92,16 +92,29 @@ def test_training_env_kwargs_apply_to_training_only(tmp_path, learning_curves):
     from stable_baselines3 import SAC
 
     shared = {"config": {"duration": 10}, "density": "sparse"}
-    training = {"config": {"reference_start_probability": 0.5}}
+    training = {"config": {"reference_start_probability": 0.0}}
     assert learning_curves.training_env_kwargs(shared, training) == {
-        "config": {"duration": 10, "reference_start_probability": 0.5},
+        "config": {"duration": 10, "reference_start_probability": 0.0},
         "density": "sparse",
     }
     assert learning_curves.training_env_kwargs(shared, {}) == shared
-    settings = job(tmp_path, "sac", 100, env="DACERF-Intersection-v0", env_kwargs=shared, train_env_kwargs=training)
-    model = learning_curves.new_model(settings, SAC, {})
-    config = model.get_env().envs[0].unwrapped.config
-    assert config["duration"] == 10 and config["reference_start_probability"] == 0.5
+    for train_env_kwargs, probability in (({}, 0.5), (training, 0.0)):  # the default: starts from the traffic flow
+        settings = job(tmp_path, "sac", 100, env="DACERF-Intersection-v0", env_kwargs=shared, train_env_kwargs=train_env_kwargs)
+        config = learning_curves.new_model(settings, SAC, {}).get_env().envs[0].unwrapped.config
+        assert config["duration"] == 10 and config["reference_start_probability"] == probability
+
+
+def test_evaluations_run_under_the_evaluation_config(learning_curves):
+    """The evaluation env: the intersection's standard starts under --env-kwargs, which may still set them."""
+    shared = {"config": {"duration": 10}, "density": "sparse"}
+    assert learning_curves.evaluation_env_kwargs("DACERF-Intersection-v0", shared) == {
+        "config": {"reference_start_probability": 0.0, "duration": 10},
+        "density": "sparse",
+    }
+    explicit = {"config": {"reference_start_probability": 0.5}}
+    assert learning_curves.evaluation_env_kwargs("DACERF-Intersection-v0", explicit) == explicit
+    assert learning_curves.evaluation_env_kwargs("DACERF-Multilane-v0", shared) == shared
+    assert learning_curves.evaluation_env_kwargs("Pendulum-v1", {}) == {}  # no config keyword for other envs
 
 
 def test_several_training_envs_share_each_gradient_step(tmp_path, learning_curves):

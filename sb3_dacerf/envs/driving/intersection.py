@@ -1,12 +1,14 @@
 """
 Urban intersection of the paper (``DACERF-Intersection-v0``), on highway-env's ``IntersectionEnv``: a four-way
 crossroads (one 4 m lane each way, 22 m junction box) with IDM traffic on every arm, the horizontal road having
-priority. The ego starts 20-40 m before the junction on the south arm and follows a route drawn among ``routes``
-(highway-env's lanes; the U-turn, not drawn by default, is a keyhole loop through the junction box) at a target speed
-drawn from ``reference_speed_ranges``. Between the ego and traffic, ``right_of_way`` ``"first_come"`` lets the one
-ahead go first; with ``yield_at_junction`` the reference speed yields at the stop line to crossing traffic
-(:meth:`IntersectionEnv.reference_speed_cap`). The severe-event penalty is the paper's constant 200. The episode ends
-on a collision, off the road, or 25 m into an exit lane (a success at the route's exit), and is truncated after 40 s.
+priority. The ego starts on the south arm 20-40 m before the junction or, with probability
+``reference_start_probability`` (0.5; 0 in evaluations: ``IntersectionEnv.EVALUATION_CONFIG``), on its path up to 15 m
+into the exit lane, and follows a route drawn among ``routes`` (highway-env's lanes; the U-turn, not drawn by default,
+is a keyhole loop through the junction box) at a target speed drawn from ``reference_speed_ranges``. Between the ego
+and traffic, ``right_of_way`` ``"first_come"`` lets the one ahead go first; with ``yield_at_junction`` the reference
+speed yields at the stop line to crossing traffic (:meth:`IntersectionEnv.reference_speed_cap`). The severe-event
+penalty is the paper's constant 200. The episode ends on a collision, off the road, or 25 m into an exit lane (a
+success at the route's exit), and is truncated after 40 s.
 """
 
 from __future__ import annotations
@@ -136,7 +138,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         "reference_speed_ranges": _speed_ranges_rule,
         "right_of_way": choice(RIGHT_OF_WAY),
     }
-    TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset({"reference_start_probability"})
+    EVALUATION_CONFIG: ClassVar[dict] = {"reference_start_probability": 0.0}  #: evaluations start before the junction
     YIELD_DECELERATION = 0.5  #: [m/s²] of the yielding reference's stop at the line
     YIELD_MARGIN = 1.0  #: [s] widening of a traffic vehicle's time window at a conflict
     EXIT_DISTANCE = 25.0  #: [m] driven into an exit lane that ends the episode
@@ -158,9 +160,9 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 "right_of_way": "first_come",  # between the ego and traffic: the one ahead goes first; or "priority"
                 "yield_at_junction": True,  # the reference speed yields at the stop line; False: the paper's reference
                 "collision_penalty": 200.0,  # the paper's constant severe-event penalty
-                # Training only: the probability of an episode starting on the reference path (with the steering of
-                # its curvature) from 20 m before the junction to 10 m before the exit distance
-                "reference_start_probability": 0.0,
+                # The probability of a start on the reference path (with its curvature's steering) from 20 m before the
+                # junction to 10 m before the exit distance: the paper's randomised initial state (evaluations: 0)
+                "reference_start_probability": 0.5,
             }
         )
         return config

@@ -43,7 +43,7 @@ class PaperDrivingMixin(_HighwayEnv):
 
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {}  #: config overrides of each traffic density
     CONFIG_RULES: ClassVar[dict[str, Rule]] = {}  #: type and range checks of the scenario's own config keys
-    TRAINING_ONLY_CONFIG: ClassVar[frozenset[str]] = frozenset()  #: keys that evaluations leave out (exploring starts)
+    EVALUATION_CONFIG: ClassVar[dict] = {}  #: the config under which evaluations run (over the trained config)
     reference: ReferencePath
     reference_speed: float
     scene: Scene
