@@ -236,17 +236,18 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     def reference_speed_cap(self) -> float:
         """
         While the ego must yield, the speed [m/s] from which braking at ``YIELD_DECELERATION`` stops it at the stop
-        line (``inf`` otherwise): when a traffic vehicle's time window at a conflict of their paths (along its route,
-        arriving no earlier than at 3 m/s² up to 9 m/s, leaving no later than at 2 m/s, widened by ``YIELD_MARGIN``)
-        overlaps the ego's (at 0.7 m/s² up to its target speed, its body 3 m before and after the conflict).
+        line (``inf`` otherwise): while its front is before the line (also when it is too fast to stop there, so that
+        ignoring the reference does not release it) and a traffic vehicle's time window at a conflict of their paths
+        (along its route, arriving no earlier than at 3 m/s² up to 9 m/s, leaving no later than at 2 m/s, widened by
+        ``YIELD_MARGIN``) overlaps the ego's (at 0.7 m/s² up to its target speed, its body 3 m before and after the
+        conflict).
         """
         if not self.config["yield_at_junction"] or self.route == "u_turn":
             return np.inf
         ego = self.vehicle
         front_to_line = float(ego.position[1]) - ego.LENGTH / 2 - JUNCTION_HALF_SIZE
-        braking = -self.config["acceleration_range"][0]
-        if front_to_line <= -0.5 or ego.speed**2 / (2 * braking) > front_to_line + 0.5:
-            return np.inf  # in the junction, or committed to it
+        if front_to_line <= -0.5:
+            return np.inf  # in the junction
         conflicts = self._conflicts[ROUTES[self.route]]
         to_turn = float(ego.position[1]) - JUNCTION_HALF_SIZE  # from the ego's centre to the start of its turn lane
         # the ego's time window at each conflict
