@@ -169,6 +169,9 @@ def test_default_config():
     assert default_config("ppo", "DMC-dog-run-v0") is None
 
 
+DMC_SCALING_IDS = ["DMC-humanoid-stand-v0", "DMC-humanoid-walk-v0", "DMC-dog-stand-v0"]
+
+
 def test_yaml_entries():
     dacerf = yaml.safe_load((HYPERPARAMS_DIR / "dacerf.yml").read_text())
     sac = yaml.safe_load((HYPERPARAMS_DIR / "sac.yml").read_text())
@@ -182,7 +185,12 @@ def test_yaml_entries():
         entry = dacerf[env_id]
         assert set(entry) - ZOO_KEYS <= dacerf_args, env_id
         driving_keys = set(DRIVING_KEYS) if env_id in DRIVING_IDS else set()
-        assert set(entry) <= {"policy", "n_timesteps", "learning_starts"} | driving_keys, env_id
+        regime_keys = {"train_freq", "gradient_steps"} if env_id in DMC_SCALING_IDS else set()
+        assert set(entry) <= {"policy", "n_timesteps", "learning_starts"} | driving_keys | regime_keys, env_id
+    # the scalability runs: every learner two environment steps per gradient step (benchmarks/results/dmc-scaling)
+    for env_id in DMC_SCALING_IDS:
+        assert dacerf[env_id]["train_freq"] == sac[env_id]["train_freq"] == 2, env_id
+        assert dacerf[env_id]["gradient_steps"] == sac[env_id]["gradient_steps"] == 1, env_id
     # the driving entries: the normalised Langevin gradient and normalised observations (as learning_curves.py ran them)
     for env_id in DRIVING_IDS:
         assert dacerf[env_id]["langevin_normalize_gradient"] is True
@@ -209,7 +217,10 @@ def test_dacer_yaml_entries():
     # Every entry uses the constructor defaults (the driving ones with normalised observations)
     for env_id in ["Pendulum-v1", *MUJOCO_IDS, *DMC_ENV_IDS, *DRIVING_IDS]:
         driving_keys = {"normalize"} if env_id in DRIVING_IDS else set()
-        assert set(dacer[env_id]) <= {"policy", "n_timesteps", "learning_starts"} | driving_keys, env_id
+        regime_keys = {"train_freq", "gradient_steps"} if env_id in DMC_SCALING_IDS else set()
+        assert set(dacer[env_id]) <= {"policy", "n_timesteps", "learning_starts"} | driving_keys | regime_keys, env_id
+        if regime_keys:
+            assert (dacer[env_id]["train_freq"], dacer[env_id]["gradient_steps"]) == (2, 1), env_id
 
 
 def test_dsac_yaml_entries():
