@@ -269,9 +269,7 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
             for name in BUFFER_ARRAYS:
                 if prefix + name in arrays.files:
                     getattr(part, name)[: len(arrays[prefix + name])] = arrays[prefix + name]
-    # Checkpoints written before the buffer's parts were named kept only the one buffer's pos and full
-    positions = state.get("positions", {"": (state.get("pos"), state.get("full"))})
-    for prefix, (pos, full) in positions.items():
+    for prefix, (pos, full) in state["positions"].items():
         parts[prefix].pos, parts[prefix].full = pos, full
     # Loading re-seeds everything (SB3's _setup_model): put the random states back where they were
     th.set_rng_state(state["torch"])
