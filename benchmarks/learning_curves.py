@@ -36,13 +36,6 @@ transition. ``--vec-env subproc`` steps the N environments in as many processes 
 cores); its environments cannot be pickled into a checkpoint, so it needs ``--checkpoint-freq 0``. Every row of the
 CSVs carries both axes, ``env_steps`` (= ``timesteps``, transitions) and ``gradient_steps`` (updates made);
 ``--x-axis gradient_steps`` plots against the latter.
-
-``--demonstrations N`` (driving scenarios) puts N transitions of the scripted driver
-(:class:`sb3_dacerf.envs.driving.scripted.ScriptedDriver`) in a new run's replay buffer before it trains, collected
-on its own training env as SB3 collects its rollouts; they stay in the buffer and are not counted in the run's steps.
-With ``--demonstration-fraction F`` they are kept in a :class:`sb3_dacerf.common.buffers.DemonstrationReplayBuffer`,
-which draws the share F of every batch from them. ``--demonstrator junction`` gives them with the intersection's
-gap-accepting driver (:class:`sb3_dacerf.envs.driving.scripted.JunctionDriver`) instead.
 """
 
 import argparse
@@ -102,9 +95,6 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # rewards are audited as undiscounted episode totals)
     "sac-gamma998": ("SAC", dict(gamma=0.998)),
     "dacerf-gradnorm-gamma998": ("DACERF", dict(langevin_normalize_gradient=True, gamma=0.998)),
-    # with --demonstration-fraction: the demonstrations' own actions as flow-matching targets (no Langevin step), the
-    # DemonstrationReplayBuffer's demonstration_targets="actions"
-    "dacerf-gradnorm-demo-actions": ("DACERF", dict(langevin_normalize_gradient=True, demonstration_targets="actions")),
     "td3": ("TD3", {}),
     "tqc": ("TQC", {}),
     "crossq": ("CrossQ", {}),
@@ -172,12 +162,6 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
 BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 
 
-def buffer_parts(buffer: Any) -> dict[str, Any]:
-    """The replay buffers a checkpoint stores by name prefix: the model's, and a DemonstrationReplayBuffer's second."""
-    demonstrations = getattr(buffer, "demonstrations", None)
-    return {"": buffer} if demonstrations is None else {"": buffer, "demonstrations.": demonstrations}
-
-
 def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_seconds: float) -> None:
     """
     Everything a run needs to go on exactly as if it had not stopped: the model (with its optimizers and
@@ -197,13 +181,9 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     model.save(tmp / "model.zip")
-    parts = buffer_parts(model.replay_buffer)
-    arrays = {}
-    for prefix, part in parts.items():
-        size = part.buffer_size if part.full else part.pos
-        for name in BUFFER_ARRAYS:
-            if getattr(part, name, None) is not None:
-                arrays[prefix + name] = getattr(part, name)[:size]
+    buffer = model.replay_buffer
+    size = buffer.buffer_size if buffer.full else buffer.pos
+    arrays = {name: getattr(buffer, name)[:size] for name in BUFFER_ARRAYS if getattr(buffer, name, None) is not None}
     np.savez(tmp / "replay_buffer.npz", **arrays)
     env = model.get_env()
     # VecNormalize pickles its statistics without the environments it wraps: both are kept
@@ -212,7 +192,7 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
         venv = env.venv if normalize else env
         cloudpickle.dump(dict(venv=venv, normalize=normalize, returns=getattr(normalize, "returns", None)), file)
     state = dict(
-        positions={prefix: (part.pos, part.full) for prefix, part in parts.items()},
+        positions={"": (buffer.pos, buffer.full)},  # the replay buffer's, keyed by its arrays' name prefix (none)
         torch=th.get_rng_state(),
         numpy=np.random.get_state(),
         python=random.getstate(),
@@ -263,14 +243,11 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
         state = pickle.load(file)
     # force_reset=False: go on from the environment's state and the model's _last_obs
     model = algorithm.load(folder / "model.zip", env=env, device=device, force_reset=False)
-    parts = buffer_parts(model.replay_buffer)
+    buffer = model.replay_buffer
     with np.load(folder / "replay_buffer.npz") as arrays:
-        for prefix, part in parts.items():
-            for name in BUFFER_ARRAYS:
-                if prefix + name in arrays.files:
-                    getattr(part, name)[: len(arrays[prefix + name])] = arrays[prefix + name]
-    for prefix, (pos, full) in state["positions"].items():
-        parts[prefix].pos, parts[prefix].full = pos, full
+        for name in arrays.files:
+            getattr(buffer, name)[: len(arrays[name])] = arrays[name]
+    buffer.pos, buffer.full = state["positions"][""]
     # Loading re-seeds everything (SB3's _setup_model): put the random states back where they were
     th.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
@@ -335,20 +312,6 @@ def new_model(job: dict[str, Any], algorithm: type, kwargs: dict[str, Any]) -> A
     kwargs = dict(kwargs)
     if job.get("steps_per_gradient") is not None:
         kwargs.update(steps_per_gradient_kwargs(job["steps_per_gradient"], n_envs))
-    # an argument of the DemonstrationReplayBuffer
-    demonstration_targets = kwargs.pop("demonstration_targets", "langevin")
-    if job.get("demonstration_fraction") is not None:
-        from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
-
-        kwargs["replay_buffer_class"] = DemonstrationReplayBuffer
-        kwargs["replay_buffer_kwargs"] = dict(
-            demonstration_fraction=job["demonstration_fraction"], demonstration_targets=demonstration_targets
-        )
-    elif demonstration_targets != "langevin":
-        raise SystemExit(
-            f"variant {job['variant']} fits the demonstrations' own actions: pass --demonstrations N and "
-            "--demonstration-fraction F (a DemonstrationReplayBuffer)"
-        )
     if "action_noise_std" in kwargs:
         dim = env.action_space.shape[0]
         kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), kwargs.pop("action_noise_std") * np.ones(dim))
@@ -423,11 +386,6 @@ def run_one(job: dict[str, Any]) -> list[dict[str, Any]]:
         print(f"{folder}: resumed at {model.num_timesteps} steps", flush=True)
     else:
         model = new_model(job, algorithm, kwargs)
-        if job.get("demonstrations"):
-            from sb3_dacerf.common.demonstrations import add_scripted_transitions
-            from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
-
-            add_scripted_transitions(model, job["demonstrations"], driver=DEMONSTRATORS[job.get("demonstrator", "scripted")])
     resumed_at = model.num_timesteps
     start = time.perf_counter() - elapsed
 
@@ -628,7 +586,7 @@ def check_regime_args(parser: argparse.ArgumentParser, args: argparse.Namespace)
 
 
 def main() -> None:
-    from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES, DRIVING_ENV_IDS
+    from sb3_dacerf.envs.driving import DRIVING_ENV_IDS
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Pendulum-v1")
@@ -708,25 +666,6 @@ def main() -> None:
         help="with --vec-normalize's observations, also scale the training rewards by VecNormalize's running return "
         "std (norm_reward=True); evaluations report the raw returns",
     )
-    parser.add_argument(
-        "--demonstrations",
-        type=int,
-        default=0,
-        help="driving scenarios: put that many transitions of the scripted driver in the replay buffer before training "
-        "(use another --out); they are not counted in the run's steps",
-    )
-    parser.add_argument(
-        "--demonstration-fraction",
-        type=float,
-        help="with --demonstrations: keep them in a DemonstrationReplayBuffer and draw this share of every batch "
-        "from them (default: a plain replay buffer, where their share falls as the agent's transitions fill it)",
-    )
-    parser.add_argument(
-        "--demonstrator",
-        choices=DEMONSTRATOR_NAMES,
-        default="scripted",
-        help="with --demonstrations: the driver that gives them (junction: the intersection's gap-accepting driver)",
-    )
     parser.add_argument("--quick", action="store_true", help="2 seeds, 3k steps: checks the pipeline in minutes")
     parser.add_argument(
         "--report-only", action="store_true", help="train nothing: report the runs of --variants found under --out"
@@ -741,27 +680,11 @@ def main() -> None:
         args.seeds, args.timesteps, args.eval_freq, args.eval_episodes = 2, 3_000, 1_000, 3
     if args.n_envs < 1:
         parser.error(f"--n-envs must be at least 1, got {args.n_envs}")
-    if args.demonstrations < 0:
-        parser.error(f"--demonstrations must be at least 0, got {args.demonstrations}")
 
     if args.vec_normalize == "masked" and args.env not in DRIVING_ENV_IDS:
         parser.error(
             f"--vec-normalize masked normalises the vehicle rows of a driving scenario ({', '.join(DRIVING_ENV_IDS)}); "
             f"{args.env} has none: pass --vec-normalize alone"
-        )
-    if args.demonstrations and args.env not in DRIVING_ENV_IDS:
-        parser.error(
-            f"--demonstrations needs a driving scenario ({', '.join(DRIVING_ENV_IDS)}), whose scripted driver gives "
-            f"them; {args.env} has none: leave it out"
-        )
-    if args.demonstration_fraction is not None and not (args.demonstrations and 0 <= args.demonstration_fraction <= 1):
-        parser.error(
-            f"--demonstration-fraction {args.demonstration_fraction}: pass a share in [0, 1], together with "
-            "--demonstrations N (the demonstrations it draws from)"
-        )
-    if args.demonstrator == "junction" and (not args.demonstrations or args.env != "DACERF-Intersection-v0"):
-        parser.error(
-            "--demonstrator junction drives DACERF-Intersection-v0 and gives --demonstrations: pass both (or leave it out)"
         )
     check_regime_args(parser, args)
     frequencies = (("--eval-freq", args.eval_freq), ("--checkpoint-freq", args.checkpoint_freq))
@@ -802,9 +725,6 @@ def main() -> None:
             n_envs=args.n_envs,
             steps_per_gradient=args.steps_per_gradient,
             vec_env=args.vec_env,
-            demonstrations=args.demonstrations,
-            demonstration_fraction=args.demonstration_fraction,
-            demonstrator=args.demonstrator,
         )
         for seed in range(args.first_seed, args.first_seed + args.seeds)
         for variant in args.variants

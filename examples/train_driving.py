@@ -6,18 +6,14 @@ at the intersection, time limit reached safely on the highway), collision and of
 
     python examples/train_driving.py --timesteps 2000 --eval-episodes 5       # short smoke run of both scenarios
     python examples/train_driving.py --env multilane --timesteps 100000 --n-envs 2 --vec-normalize --save runs/dacerf
-    python examples/train_driving.py --env multilane --timesteps 100000 --vec-normalize --demonstrations 10000 \
-        --demonstration-fraction 0.5 --config '{"reference_speed_follows_traffic": true}'  # the shipped multilane driver
     python examples/train_driving.py --env multilane --density random --vec-normalize masked --timesteps 100000  # all densities
-    python examples/train_driving.py --env intersection --timesteps 100000 --vec-normalize --demonstrations 10000 \
-        --demonstration-fraction 0.5 --demonstration-targets actions               # the shipped intersection driver
     python examples/train_driving.py --load runs/dacerf_multilane --timesteps 50000 --save runs/dacerf   # resume
     python examples/evaluate_driving.py runs/dacerf_multilane.zip --episodes 50                        # evaluate
 
 ``--density random`` (or ``sparse,normal``, or a JSON dict of weights) draws each training episode's traffic density
 from its reset seed, and the final evaluation's too; ``--vec-normalize masked`` normalises the observations with
 ``sb3_dacerf.common.vec_normalize.MaskedVecNormalize``, whose empty vehicle rows stay zeros whatever the number of
-vehicles (``--vec-normalize`` alone: SB3's ``VecNormalize``, with which the drivers of ``examples/models/`` trained).
+vehicles (``--vec-normalize`` alone: SB3's ``VecNormalize``).
 At the intersection half the training episodes start in the traffic flow (``reference_start_probability``, 0.5 by
 default), and the final evaluation starts from the standard starts (``evaluate_driving.evaluation_config``).
 
@@ -61,14 +57,11 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
-from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
-from sb3_dacerf.common.demonstrations import add_scripted_transitions
 from sb3_dacerf.common.persistence import load_vec_normalize, safe_save, save_vec_normalize
 from sb3_dacerf.common.regime import steps_per_gradient_kwargs
 from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 from sb3_dacerf.dacerf import PAPER_HYPERPARAMETERS
 from sb3_dacerf.envs.driving.common.observation import vehicle_rows
-from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from evaluate_driving import (
@@ -168,34 +161,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="normalise observations (rewards kept): with SB3's VecNormalize, or 'masked': with "
         "sb3_dacerf.common.vec_normalize.MaskedVecNormalize, whose empty vehicle rows stay zeros at any density",
     )
-    parser.add_argument(
-        "--demonstrations",
-        type=int,
-        default=0,
-        help="put that many transitions of the scripted driver in a new model's replay buffer before it trains "
-        "(sb3_dacerf.common.demonstrations.add_scripted_transitions; not counted in --timesteps; needs --n-envs 1)",
-    )
-    parser.add_argument(
-        "--demonstration-fraction",
-        type=float,
-        help="with --demonstrations: keep them in a DemonstrationReplayBuffer (sb3_dacerf.common.buffers) that draws "
-        "this share of every batch from them (default: the plain buffer, where their share falls as the model's own "
-        "transitions fill it)",
-    )
-    parser.add_argument(
-        "--demonstrator",
-        choices=list(DEMONSTRATORS),
-        default="scripted",
-        help="with --demonstrations: the driver that gives them, the reference driver or, with --env intersection, "
-        "'junction', the gap-accepting JunctionDriver (sb3_dacerf.envs.driving.scripted)",
-    )
-    parser.add_argument(
-        "--demonstration-targets",
-        choices=["langevin", "actions"],
-        help="DACERF with --demonstration-fraction: 'actions' fits the demonstrated actions as they are, 'langevin' "
-        "(the default) moves them by Langevin steps like the model's own (the DemonstrationReplayBuffer's "
-        "demonstration_targets)",
-    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save", help="save each model to <SAVE>_<scenario>.zip (+ .json, _vecnormalize.json)")
     parser.add_argument("--save-replay-buffer", action="store_true", help="also save the replay buffer (for --load)")
@@ -248,31 +213,11 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
             "--density all evaluates at each density in turn (evaluate_driving.py): to train on all of them, "
             "pass --density random, which draws one per episode"
         )
-    if args.demonstrations < 0:
-        parser.error(f"--demonstrations must be >= 0, got {args.demonstrations}")
-    if args.demonstration_fraction is not None and not (args.demonstrations and 0 <= args.demonstration_fraction <= 1):
-        parser.error(
-            f"--demonstration-fraction {args.demonstration_fraction}: pass a share in [0, 1], together with "
-            "--demonstrations N (the demonstrations it draws from)"
-        )
-    if args.demonstrator == "junction" and (not args.demonstrations or args.env != "intersection"):
-        parser.error("--demonstrator junction gives the intersection's --demonstrations: pass both and --env intersection")
-    if args.demonstration_targets and (args.demonstration_fraction is None or args.algo not in (None, "dacerf")):
-        parser.error(
-            "--demonstration-targets is DACERF's treatment of the demonstrations kept apart by --demonstration-fraction: "
-            f"pass --demonstration-fraction too, and train DACERF (got --algo {args.algo or 'dacerf'})"
-        )
     if args.steps_per_gradient is not None:
         try:
             steps_per_gradient_kwargs(args.steps_per_gradient, args.n_envs)
         except ValueError as error:
             parser.error(f"--steps-per-gradient / --n-envs: {error}")
-    if args.demonstrations and (args.n_envs > 1 or args.load or args.vec_env == "subproc"):
-        parser.error(
-            "--demonstrations fills the buffer of a new model whose envs run in this process: leave out --load, and "
-            f"use --n-envs 1 and --vec-env dummy (got {args.n_envs}, {args.vec_env or 'default'}: SubprocVecEnv runs its envs "
-            "in other processes)"
-        )
 
 
 def algorithm_kwargs(args: argparse.Namespace) -> dict:
@@ -290,11 +235,6 @@ def algorithm_kwargs(args: argparse.Namespace) -> dict:
         kwargs["langevin_normalize_gradient"] = True
     if args.batch_size is not None:
         kwargs["batch_size"] = args.batch_size
-    if args.demonstration_fraction is not None:
-        kwargs["replay_buffer_class"] = DemonstrationReplayBuffer
-        kwargs["replay_buffer_kwargs"] = dict(demonstration_fraction=args.demonstration_fraction)
-    if args.demonstration_targets:
-        kwargs["replay_buffer_kwargs"]["demonstration_targets"] = args.demonstration_targets
     if args.steps_per_gradient is not None:
         kwargs.update(steps_per_gradient_kwargs(args.steps_per_gradient, args.n_envs))
     return kwargs
@@ -339,8 +279,6 @@ def main(argv: list[str] | None = None) -> None:
             print(f"{env_id}: resumed {load_paths['model']} at {model.num_timesteps} steps", flush=True)
         else:
             model = algo_class("MlpPolicy", env, learning_starts=args.learning_starts, seed=args.seed, verbose=0, **algo_kwargs)
-            if args.demonstrations:
-                add_scripted_transitions(model, args.demonstrations, driver=DEMONSTRATORS[args.demonstrator])
         print(
             f"{env_id} ({args.density}), {args.algo}, training {args.timesteps} steps on {args.n_envs} env(s)"
             + (", observations normalised" if isinstance(env, VecNormalize) else "")

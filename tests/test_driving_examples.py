@@ -336,19 +336,16 @@ def test_train_at_steps_per_gradient(trained, tmp_path, capsys):
         with pytest.raises(SystemExit):
             train.main([*args, *regime])
         assert message in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        train.main([*args, "--demonstrations", "10", "--vec-env", "subproc"])
-    assert "use --n-envs 1 and --vec-env dummy" in capsys.readouterr().err
 
 
-def test_train_with_demonstrations(tmp_path, capsys, monkeypatch):
-    """--demonstrations N: N scripted-driver transitions in the new model's buffer, beside its own --timesteps."""
+def test_train_at_the_intersection_evaluates_from_the_standard_starts(tmp_path, capsys, monkeypatch):
+    """Training starts in the traffic flow (the default), the final evaluation from the standard starts."""
     from stable_baselines3 import SAC
 
     train = load_example("train_driving")
-    save = str(tmp_path / "demo")
+    save = str(tmp_path / "sac")
     args = ["--env", "intersection", "--algo", "sac", "--timesteps", "50", "--learning-starts", "10", "--batch-size", "16"]
-    args += ["--config", json.dumps(SHORT), "--demonstrations", "40", "--eval-episodes", "1", "--log-interval", "0"]
+    args += ["--config", json.dumps(SHORT), "--eval-episodes", "1", "--log-interval", "0"]
     evaluated_configs, evaluate = [], train.evaluate
 
     def recording_evaluate(act, env, *args, **kwargs):
@@ -358,33 +355,10 @@ def test_train_with_demonstrations(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(train, "evaluate", recording_evaluate)
     train.main([*args, "--save", save, "--save-replay-buffer"])
     assert "trained 50 steps in total" in capsys.readouterr().out
-    # trained from the traffic flow (the default), evaluated from the standard starts
     assert evaluated_configs[0]["reference_start_probability"] == 0.0 and evaluated_configs[0]["duration"] == 3
     model = SAC.load(save + "_intersection.zip")
     model.load_replay_buffer(save + "_intersection_replay_buffer.pkl")
-    assert model.replay_buffer.pos == 90
-    with pytest.raises(SystemExit):
-        train.main([*args, "--n-envs", "2"])
-    assert "--demonstrations fills the buffer of a new model" in capsys.readouterr().err
-    # --demonstration-fraction: kept apart, drawn as that share of every batch
-    train.main([*args, "--demonstration-fraction", "0.5", "--save", save, "--save-replay-buffer"])
-    model = SAC.load(save + "_intersection.zip")
-    model.load_replay_buffer(save + "_intersection_replay_buffer.pkl")
-    assert model.replay_buffer.n_demonstrations() == 40 and model.replay_buffer.pos == 50
-    with pytest.raises(SystemExit):
-        train.main([*args[:-6], "--demonstration-fraction", "0.5"])  # without --demonstrations
-    assert "pass a share in [0, 1], together with --demonstrations N" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        train.main([*args, "--demonstration-targets", "actions"])  # a SAC model, no --demonstration-fraction
-    assert "pass --demonstration-fraction too, and train DACERF (got --algo sac)" in capsys.readouterr().err
-    # --demonstrator junction: the intersection's gap-accepting driver gives them
-    train.main([*args, "--demonstrator", "junction", "--save", save, "--save-replay-buffer"])
-    model = SAC.load(save + "_intersection.zip")
-    model.load_replay_buffer(save + "_intersection_replay_buffer.pkl")
-    assert model.replay_buffer.pos == 90
-    with pytest.raises(SystemExit):
-        train.main([*args[2:], "--env", "multilane", "--demonstrator", "junction"])
-    assert "--demonstrator junction gives the intersection's --demonstrations" in capsys.readouterr().err
+    assert model.replay_buffer.pos == 50
 
 
 def test_evaluate_a_dacerf_model_without_metadata(tmp_path, capsys):

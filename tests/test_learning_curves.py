@@ -143,24 +143,6 @@ def test_n_envs_must_divide_the_evaluation_and_checkpoint_frequencies(tmp_path, 
     assert not list(tmp_path.iterdir())  # refused before anything is written
 
 
-def test_demonstrations_go_into_a_new_run_s_buffer_only(tmp_path, learning_curves, monkeypatch, capsys):
-    """--demonstrations N: N scripted-driver transitions in a new run's buffer, not counted as its steps."""
-    from stable_baselines3 import SAC
-
-    settings = dict(env="DACERF-Intersection-v0", env_kwargs={"config": {"duration": 5}}, vec_normalize=True, demonstrations=60)
-    rows = learning_curves.run_one(job(tmp_path, "sac", 100, **settings))
-    assert [row["timesteps"] for row in rows] == [100]
-    folder = learning_curves.checkpoint_dir(tmp_path, "DACERF-Intersection-v0", "sac", 3)
-    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
-    assert model.num_timesteps == 100 and model.replay_buffer.pos == 160
-    # Refused outside the driving scenarios, before anything is written
-    monkeypatch.setattr(sys, "argv", ["learning_curves.py", "--demonstrations", "10", "--out", str(tmp_path / "x")])
-    with pytest.raises(SystemExit):
-        learning_curves.main()
-    assert "--demonstrations needs a driving scenario" in capsys.readouterr().err
-    assert not (tmp_path / "x").exists()
-
-
 def test_masked_normalisation_and_drawn_densities_in_a_driving_run(tmp_path, learning_curves, monkeypatch, capsys):
     """--vec-normalize masked with --env-kwargs '{"density": "random"}': the checkpoint keeps MaskedVecNormalize."""
     from stable_baselines3 import SAC
@@ -182,50 +164,6 @@ def test_masked_normalisation_and_drawn_densities_in_a_driving_run(tmp_path, lea
     with pytest.raises(SystemExit):
         learning_curves.main()
     assert "--vec-normalize masked normalises the vehicle rows of a driving scenario" in capsys.readouterr().err
-    assert not (tmp_path / "x").exists()
-
-
-def test_demonstrator_junction_gives_the_demonstrations_at_the_intersection_only(tmp_path, learning_curves, monkeypatch, capsys):
-    """--demonstrator junction: the JunctionDriver fills the buffer; refused without --demonstrations or elsewhere."""
-    from stable_baselines3 import SAC
-
-    settings = dict(env="DACERF-Intersection-v0", env_kwargs={"config": {"duration": 5}}, demonstrations=60)
-    learning_curves.run_one(job(tmp_path, "sac", 100, demonstrator="junction", **settings))
-    folder = learning_curves.checkpoint_dir(tmp_path, "DACERF-Intersection-v0", "sac", 3)
-    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
-    assert model.num_timesteps == 100 and model.replay_buffer.pos == 160
-    for argv in (
-        ["--env", "DACERF-Intersection-v0"],
-        ["--env", "DACERF-Multilane-v0", "--demonstrations", "10"],
-    ):
-        monkeypatch.setattr(
-            sys, "argv", ["learning_curves.py", *argv, "--demonstrator", "junction", "--out", str(tmp_path / "x")]
-        )
-        with pytest.raises(SystemExit):
-            learning_curves.main()
-        assert "--demonstrator junction drives DACERF-Intersection-v0 and gives --demonstrations" in capsys.readouterr().err
-    assert not (tmp_path / "x").exists()
-
-
-def test_demonstration_fraction_keeps_them_in_their_own_part(tmp_path, learning_curves, monkeypatch, capsys):
-    """--demonstration-fraction F: the demonstrations in a DemonstrationReplayBuffer drawing F of every batch."""
-    from stable_baselines3 import SAC
-
-    from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
-
-    settings = dict(env="DACERF-Intersection-v0", env_kwargs={"config": {"duration": 5}}, demonstrations=60)
-    learning_curves.run_one(job(tmp_path, "sac", 100, demonstration_fraction=0.5, **settings))
-    folder = learning_curves.checkpoint_dir(tmp_path, "DACERF-Intersection-v0", "sac", 3)
-    model, *_ = learning_curves.load_checkpoint(SAC, folder, "cpu")
-    buffer = model.replay_buffer
-    assert isinstance(buffer, DemonstrationReplayBuffer) and buffer.demonstration_fraction == 0.5
-    assert buffer.n_demonstrations() == 60 and buffer.pos == 100
-    for argv in (["--demonstration-fraction", "0.5"], ["--demonstrations", "10", "--demonstration-fraction", "2"]):
-        argv = ["learning_curves.py", "--env", "DACERF-Intersection-v0", *argv, "--out", str(tmp_path / "x")]
-        monkeypatch.setattr(sys, "argv", argv)
-        with pytest.raises(SystemExit):
-            learning_curves.main()
-        assert "pass a share in [0, 1], together with --demonstrations N" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
 
 
