@@ -1023,36 +1023,3 @@ if __name__ == "__main__":
             episode["spec"],
             f"{len(record['rewards'])} steps, return {sum(record['rewards']):.2f}, last flags {record['flags'][-1]}",
         )
-
-
-def test_scripted_transitions_fill_a_model_s_replay_buffer():
-    """add_scripted_transitions: the driver's transitions, stored as SB3 stores its own, not counted as steps."""
-    from stable_baselines3 import SAC
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
-
-    from sb3_dacerf.common.demonstrations import add_scripted_transitions
-    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
-
-    vec_env = VecNormalize(DummyVecEnv([lambda: make("DACERF-Intersection-v0", duration=5)]), norm_reward=False)
-    model = SAC("MlpPolicy", vec_env, seed=3, learning_starts=10, buffer_size=1_000)
-    add_scripted_transitions(model, 120)
-    buffer = model.replay_buffer
-    assert buffer.pos == 120 and model.num_timesteps == 0
-    assert vec_env.obs_rms.count > 120  # the observation statistics saw them (and the resets)
-    assert buffer.dones[:120].sum() >= 2  # episodes of at most 50 steps ended, and the env reset
-    # Raw observations and the driver's actions in the policy's [-1, 1] scale: as driving the first episode by hand
-    # (the VecEnv's first reset has the model's seed)
-    env = make("DACERF-Intersection-v0", duration=5)
-    obs, _ = env.reset(seed=3)
-    driver = ScriptedDriver(env)
-    for step in range(10):
-        np.testing.assert_allclose(buffer.observations[step, 0], obs, atol=1e-6)
-        action = driver(obs)
-        np.testing.assert_allclose(buffer.actions[step, 0], model.policy.scale_action(action), atol=1e-6)
-        obs, *_ = env.step(action)
-    model.learn(20)  # and the model learns on from there
-    assert model.num_timesteps == 20 and buffer.pos == 140
-    with pytest.raises(ValueError, match="n_transitions must be >= 0"):
-        add_scripted_transitions(model, -1)
-    with pytest.raises(TypeError, match="ScriptedDriver drives"):
-        add_scripted_transitions(SAC("MlpPolicy", "Pendulum-v1"), 10)

@@ -33,7 +33,6 @@ from stable_baselines3.common.utils import check_for_correct_spaces, get_system_
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from stable_baselines3.common.vec_env.patch_gym import _convert_space
 
-from sb3_dacerf.common.buffers import DemonstrationReplayBuffer
 from sb3_dacerf.common.utils import atomic_path, remove_stale_temporaries, save_path_with_suffix
 from sb3_dacerf.common.vec_normalize import MaskedRowsRunningMeanStd, MaskedVecNormalize
 
@@ -51,7 +50,7 @@ KNOWN_CLASSES: dict[str, type] = {
         *(getattr(th.nn, name) for name in ("ReLU", "Tanh", "ELU", "GELU", "SiLU", "Mish", "LeakyReLU", "Sigmoid", "Softplus")),
         *(getattr(th.optim, name) for name in ("Adam", "AdamW", "SGD", "RMSprop")),
         *(FlattenExtractor, CombinedExtractor, NatureCNN),
-        *(ReplayBuffer, DictReplayBuffer, NStepReplayBuffer, DemonstrationReplayBuffer),
+        *(ReplayBuffer, DictReplayBuffer, NStepReplayBuffer),
     )
 }
 # Learning-rate schedules (SB3's and RL Zoo's lin_) stored as their class and fields

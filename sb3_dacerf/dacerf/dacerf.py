@@ -160,7 +160,7 @@ class DACERF(TwinCriticAlgorithm):
         The two terms of the actor loss ``J_F`` on a replay batch (Algorithm 2), differentiable in the actor:
         ``improvement_term`` ``mean(-Q(s, π(s)) / κ)`` and ``imitation_term`` ``mean(λ_f ||v - (a* - a_0)||²)``
         (``Q = min(Q_1, Q_2)``, :func:`actor_loss_weights`); and, detached, ``kappa``, ``lambda_f``, ``flow_error``,
-        ``q_values_star``, ``q_values_buffer``, the state ``features`` and the flow-matching ``targets``.
+        ``q_values_star``, ``q_values_buffer``, the state ``features`` and the Langevin ``targets`` ``a*``.
         """
         observations, actions_buffer = replay_data.observations, replay_data.actions
         with frozen(self._critic_parameters()):
@@ -184,8 +184,7 @@ class DACERF(TwinCriticAlgorithm):
             kappa, lambda_f = actor_loss_weights(
                 self.flow_matching_weights, q_values_star, q_values_buffer, self.flow_matching_coef
             )
-            targets, lambda_f = self.imitation_targets(replay_data, actions_star, lambda_f)
-            flow_error = flow_matching_loss(lambda a_t, t: self.actor.velocity(features, a_t, t), targets)
+            flow_error = flow_matching_loss(lambda a_t, t: self.actor.velocity(features, a_t, t), actions_star)
         return dict(
             improvement_term=(-q_values_pi / kappa).mean(),
             imitation_term=(lambda_f * flow_error).mean(),
@@ -195,15 +194,8 @@ class DACERF(TwinCriticAlgorithm):
             q_values_star=q_values_star,
             q_values_buffer=q_values_buffer,
             features=features.detach(),
-            targets=targets,
+            targets=actions_star,
         )
-
-    @staticmethod
-    def imitation_targets(replay_data: Any, targets: th.Tensor, weights: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """The flow-matching targets and weights of a batch: the Langevin targets ``a*`` and ``λ_f``, unless the batch's
-        own ``imitation_targets`` decides (:class:`~sb3_dacerf.common.buffers.DemonstrationReplayBuffer`'s)."""
-        choose = getattr(replay_data, "imitation_targets", None)
-        return (targets, weights) if choose is None else choose(targets, weights)
 
     def _update_actor(self, replay_data: Any) -> dict[str, float]:
         """One gradient step on the actor loss ``J_F`` (and on ``α`` when it is learned); returns the values to log."""
