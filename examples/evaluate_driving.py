@@ -7,7 +7,7 @@ posterior noise, DSAC's and SAC's ``tanh`` of the Gaussian's mean).
     python examples/evaluate_driving.py driving_multilane.zip --episodes 20
     python examples/evaluate_driving.py model.zip --env intersection --algo dsac --vec-normalize stats.json
     python examples/evaluate_driving.py --scripted --env multilane --episodes 50   # the scripted reference driver
-    python examples/evaluate_driving.py --scripted junction --env intersection --episodes 50   # its demonstrator
+    python examples/evaluate_driving.py --scripted junction --env intersection --episodes 50   # gap acceptance
     python examples/evaluate_driving.py --idle --env intersection --episodes 50    # zero increments: the floor
     python examples/evaluate_driving.py examples/models/dacerf_multilane --density all --episodes 50   # one table
 
@@ -57,7 +57,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 import sb3_dacerf  # noqa: F401  (registers the environment ids)
 from sb3_dacerf import DACER, DACERF, DSAC
 from sb3_dacerf.common.persistence import check_sha256, load_vec_normalize, safe_load, saved_algorithm_name
-from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
+from sb3_dacerf.envs.driving import SCRIPTED_DRIVER_NAMES
 from sb3_dacerf.envs.driving.density import DENSITIES, DensitySpec, density_weights
 
 SCENARIOS = {"multilane": "DACERF-Multilane-v0", "intersection": "DACERF-Intersection-v0"}
@@ -474,9 +474,9 @@ def baseline_driver(kind: str, env: gym.Env) -> Callable[[np.ndarray], np.ndarra
     """A scripted driver (``scripted``, ``junction``) or zero increments (``idle``) of one env."""
     if kind == "idle":
         return lambda obs: np.zeros(2, dtype=np.float32)
-    from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS
+    from sb3_dacerf.envs.driving.scripted import SCRIPTED_DRIVERS
 
-    return DEMONSTRATORS[kind](env)
+    return SCRIPTED_DRIVERS[kind](env)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -486,9 +486,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--scripted",
         nargs="?",
         const="scripted",
-        choices=DEMONSTRATOR_NAMES,
+        choices=SCRIPTED_DRIVER_NAMES,
         help="evaluate a scripted driver instead of a model (needs --env): the reference driver, or 'junction', the "
-        "intersection's gap-accepting demonstrator",
+        "intersection's gap-accepting driver",
     )
     parser.add_argument(
         "--idle",

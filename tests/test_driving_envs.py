@@ -352,13 +352,13 @@ def test_intersection_routes(route):
     assert terminated and info["is_success"] and info["route"] == route
 
 
-def test_demonstrator_names_are_the_drivers_names():
-    # the command-line tools offer DEMONSTRATOR_NAMES without importing highway-env; each must name a driver
-    from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
-    from sb3_dacerf.envs.driving.scripted import DEMONSTRATORS, JunctionDriver, ScriptedDriver
+def test_scripted_driver_names_are_the_drivers_names():
+    # the command-line tools offer SCRIPTED_DRIVER_NAMES without importing highway-env; each must name a driver
+    from sb3_dacerf.envs.driving import SCRIPTED_DRIVER_NAMES
+    from sb3_dacerf.envs.driving.scripted import SCRIPTED_DRIVERS, JunctionDriver, ScriptedDriver
 
-    assert DEMONSTRATOR_NAMES == tuple(DEMONSTRATORS)
-    assert DEMONSTRATORS == {"scripted": ScriptedDriver, "junction": JunctionDriver}
+    assert SCRIPTED_DRIVER_NAMES == tuple(SCRIPTED_DRIVERS)
+    assert SCRIPTED_DRIVERS == {"scripted": ScriptedDriver, "junction": JunctionDriver}
 
 
 def module_imports(path) -> set[str]:

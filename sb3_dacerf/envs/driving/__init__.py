@@ -16,8 +16,8 @@ DRIVING_ENV_IDS = {
     "DACERF-Intersection-v0": "sb3_dacerf.envs.driving.intersection:IntersectionEnv",
 }
 
-DEMONSTRATOR_NAMES = ("scripted", "junction")
-"""The names of :data:`.scripted.DEMONSTRATORS`, importable without highway-env (for command-line choices)."""
+SCRIPTED_DRIVER_NAMES = ("scripted", "junction")
+"""The names of :data:`.scripted.SCRIPTED_DRIVERS`, importable without highway-env (for command-line choices)."""
 
 for _env_id, _entry_point in DRIVING_ENV_IDS.items():
     if _env_id not in gym.registry:

@@ -1,5 +1,5 @@
 """
-Scripted drivers of the driving scenarios, baselines and demonstrators: ``env.step(ScriptedDriver(env)(obs))``.
+Scripted drivers of the driving scenarios, baselines for evaluations: ``env.step(ScriptedDriver(env)(obs))``.
 :class:`ScriptedDriver` reads only the observation (and the env's config for scales and bounds);
 :class:`JunctionDriver` adds a gap acceptance at the intersection's stop line that reads the traffic's routes.
 """
@@ -10,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sb3_dacerf.envs.driving import DEMONSTRATOR_NAMES
+from sb3_dacerf.envs.driving import SCRIPTED_DRIVER_NAMES
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
 from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv, travel_time
@@ -203,4 +203,6 @@ class JunctionDriver(ScriptedDriver):
 
 
 #: The drivers by the names the command-line tools give them
-DEMONSTRATORS: dict[str, type[ScriptedDriver]] = dict(zip(DEMONSTRATOR_NAMES, (ScriptedDriver, JunctionDriver), strict=True))
+SCRIPTED_DRIVERS: dict[str, type[ScriptedDriver]] = dict(
+    zip(SCRIPTED_DRIVER_NAMES, (ScriptedDriver, JunctionDriver), strict=True)
+)
