@@ -2,10 +2,10 @@
 Export a driving run's checkpoint of ``benchmarks/learning_curves.py`` as a model that ``examples/evaluate_driving.py``
 and ``examples/render_driving.py`` load (the format of the models in ``examples/models/``):
 
-    python benchmarks/export_driver.py benchmarks/results/checkpoints/DACERF-Multilane-v0/dacerf-seed0 \\
-        examples/models/dacerf_multilane
-    python examples/evaluate_driving.py examples/models/dacerf_multilane --episodes 50
-    python examples/render_driving.py --model examples/models/dacerf_multilane
+    python benchmarks/export_driver.py benchmarks/results/driving-rl/checkpoints/DACERF-Multilane-v0/dacerf-seed1 \\
+        examples/models/dacerf_multilane_rl
+    python examples/evaluate_driving.py examples/models/dacerf_multilane_rl --episodes 50
+    python examples/render_driving.py --model examples/models/dacerf_multilane_rl
 
 A checkpoint is the folder ``<out>/checkpoints/<env>/<variant>-seed<N>/`` (``model.zip``, ``env.pkl``,
 ``replay_buffer.npz``, ``state.pkl``). From it ``STEM`` gets:
@@ -247,7 +247,7 @@ def export(
 def main(argv: list[str] | None = None) -> dict[str, str]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", type=Path, help="a run's folder <out>/checkpoints/<env>/<variant>-seed<N>")
-    parser.add_argument("stem", help="path of the exported files without suffix, e.g. examples/models/dacerf_multilane")
+    parser.add_argument("stem", help="path of the exported files without suffix, e.g. examples/models/dacerf_multilane_rl")
     parser.add_argument("--env", choices=list(SCENARIOS.values()), help="environment id (default: the checkpoint's)")
     parser.add_argument(
         "--env-kwargs",

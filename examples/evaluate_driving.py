@@ -9,15 +9,15 @@ posterior noise, DSAC's and SAC's ``tanh`` of the Gaussian's mean).
     python examples/evaluate_driving.py --scripted --env multilane --episodes 50   # the scripted reference driver
     python examples/evaluate_driving.py --scripted junction --env intersection --episodes 50   # gap acceptance
     python examples/evaluate_driving.py --idle --env intersection --episodes 50    # zero increments: the floor
-    python examples/evaluate_driving.py examples/models/dacerf_multilane --density all --episodes 50   # one table
+    python examples/evaluate_driving.py examples/models/dacerf_multilane_rl --density all --episodes 50   # one table
 
 ``--density all`` evaluates at each traffic density on the same seeds and prints one markdown table (TAR, arrival,
 collision and off-road rates per density); ``--density`` also takes one density, ``random``, a comma-separated
 list (``sparse,normal``) or a JSON dict of weights (``'{"sparse": 1, "dense": 3}'``) to draw one per episode.
 ``--zero-empty-rows`` gives the empty vehicle rows of the observation zeros after SB3's ``VecNormalize`` (the mean
 of its statistics) instead of the values the statistics give them: a driver whose training saw every vehicle row
-filled (the multi-lane driver of ``examples/models/``, trained in normal traffic) then drives in sparse traffic;
-drivers trained with ``sb3_dacerf.common.vec_normalize.MaskedVecNormalize`` need nothing of the kind.
+filled (trained in normal traffic with ``VecNormalize``) then drives in sparse traffic; drivers trained with
+``sb3_dacerf.common.vec_normalize.MaskedVecNormalize`` need nothing of the kind.
 
 A model saved by ``examples/train_driving.py --save NAME`` comes with ``NAME_<scenario>.json`` (env id, density,
 config, algorithm) and, if it trained with ``--vec-normalize``, ``NAME_<scenario>_vecnormalize.json``: both are

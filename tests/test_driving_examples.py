@@ -184,7 +184,7 @@ def test_evaluations_start_from_the_standard_starts(tmp_path):
     import shutil
 
     evaluate = load_example("evaluate_driving")
-    shipped, stem = os.path.join(EXAMPLES, "models", "dacerf_intersection"), str(tmp_path / "trained_in_the_flow")
+    shipped, stem = os.path.join(EXAMPLES, "models", "dacerf_intersection_rl"), str(tmp_path / "trained_in_the_flow")
     for suffix in (".zip", "_vecnormalize.json"):
         shutil.copy(shipped + suffix, stem + suffix)
     with open(shipped + ".json") as file:
@@ -412,7 +412,7 @@ def checkpoint(tmp_path_factory):
 @pytest.fixture(scope="module")
 def exported(checkpoint, tmp_path_factory):
     export = load_example("export_driver", BENCHMARKS)
-    stem = str(tmp_path_factory.mktemp("shipped") / "dacerf_multilane")
+    stem = str(tmp_path_factory.mktemp("shipped") / "driver")
     export.main([str(checkpoint[0]), stem])
     return stem
 
@@ -490,7 +490,7 @@ def test_render_a_trained_driver(exported, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "DACERF from" in printed and "observations normalised with" in printed
     assert f"DACERF-Multilane-v0: seed 10001, {result['steps']} steps, {result['outcome']}" in printed
-    assert result["strip"] == os.path.join(out, "dacerf_multilane.png") and result["gif"].endswith("dacerf_multilane.gif")
+    assert result["strip"] == os.path.join(out, "driver.png") and result["gif"].endswith("driver.gif")
     with Image.open(result["gif"]) as gif:
         assert gif.n_frames == result["gif_frames"] > 1 and gif.size == (600, 150)
     strip = np.asarray(Image.open(result["strip"]).convert("RGB"))

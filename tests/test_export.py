@@ -386,7 +386,7 @@ def test_dict_model_refuses_statistics_of_another_layout(tmp_path):
 MODELS = Path(__file__).resolve().parents[1] / "examples" / "models"
 
 
-@pytest.mark.parametrize("stem", ["dacerf_multilane", "dacerf_intersection", "dacerf_multilane_rl"])
+@pytest.mark.parametrize("stem", ["dacerf_multilane_rl", "dacerf_intersection_rl"])
 def test_every_shipped_driver_exports_with_its_statistics(tmp_path, monkeypatch, capsys, stem):
     model = DACERF.load(MODELS / f"{stem}.zip", device="cpu")
     statistics = load_vec_normalize(MODELS / f"{stem}_vecnormalize.json")

@@ -302,7 +302,7 @@ def test_a_config_class_path_is_not_imported(tmp_path, monkeypatch):
 def driver(tmp_path):
     """A copy of the shipped multi-lane driver (without its SHA256SUMS), to tamper with."""
     for suffix in (".zip", ".json", "_vecnormalize.json"):
-        shutil.copy(MODELS / f"dacerf_multilane{suffix}", tmp_path / f"driver{suffix}")
+        shutil.copy(MODELS / f"dacerf_multilane_rl{suffix}", tmp_path / f"driver{suffix}")
     return tmp_path / "driver"
 
 
@@ -380,7 +380,7 @@ def test_every_shipped_driver_file_is_listed_in_sha256sums_and_matches():
 def test_a_changed_shipped_file_is_refused_by_the_loaders(tmp_path, monkeypatch, capsys):
     evaluate = load_example("evaluate_driving")
     shutil.copytree(MODELS, tmp_path / "models")
-    stem = tmp_path / "models" / "dacerf_multilane"
+    stem = tmp_path / "models" / "dacerf_multilane_rl"
     stats = json.loads(Path(f"{stem}_vecnormalize.json").read_text())
     stats["clip_obs"] = 5.0
     Path(f"{stem}_vecnormalize.json").write_text(json.dumps(stats))
