@@ -21,7 +21,7 @@ Each frame shows the time, the ego's reference path (green) and the path the ego
 Examples::
 
     python examples/render_driving.py --out-dir driving_frames
-    python examples/render_driving.py --model examples/models/dacerf_multilane_rl --seed 10003 --frames 6
+    python examples/render_driving.py --model examples/models/dacerf_multilane_rl --seed 10002 --frames 6
 """
 
 from __future__ import annotations
