@@ -192,7 +192,8 @@ def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_s
         venv = env.venv if normalize else env
         cloudpickle.dump(dict(venv=venv, normalize=normalize, returns=getattr(normalize, "returns", None)), file)
     state = dict(
-        positions={"": (buffer.pos, buffer.full)},  # the replay buffer's, keyed by its arrays' name prefix (none)
+        buffer_pos=buffer.pos,
+        buffer_full=buffer.full,
         torch=th.get_rng_state(),
         numpy=np.random.get_state(),
         python=random.getstate(),
@@ -247,7 +248,7 @@ def load_checkpoint(algorithm: type, folder: Path, device: str) -> tuple[Any, li
     with np.load(folder / "replay_buffer.npz") as arrays:
         for name in arrays.files:
             getattr(buffer, name)[: len(arrays[name])] = arrays[name]
-    buffer.pos, buffer.full = state["positions"][""]
+    buffer.pos, buffer.full = state["buffer_pos"], state["buffer_full"]
     # Loading re-seeds everything (SB3's _setup_model): put the random states back where they were
     th.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
