@@ -1,5 +1,5 @@
 """
-Fixtures shared by the test modules.
+Fixtures and helpers shared by the test modules.
 
 Behaviours the algorithms share are tested once, parametrised over ``MODEL_LIST`` through the ``model_class``
 fixture (as sb3-contrib's tests are). A module about one algorithm overrides ``model_class`` with a fixture that
@@ -10,8 +10,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch as th
+from gymnasium import spaces
 
 from sb3_dacerf import DACER, DACERF, DSAC
 
@@ -57,3 +60,30 @@ def autograd_action_gradient(q_function):
         return grad
 
     return gradient
+
+
+class TableEnv(gym.Env):
+    """
+    Observations of 2 entries and 3 rows [x, y, mask], the first ``min_rows`` to 3 of them present (drawn):
+    MaskedVecNormalize's layout ``rows=(2, 3, 3)``.
+    """
+
+    observation_space = spaces.Box(-np.inf, np.inf, shape=(11,), dtype=np.float32)
+    action_space = spaces.Box(-1, 1, shape=(2,), dtype=np.float32)
+
+    def __init__(self, min_rows: int = 1):
+        self.min_rows = min_rows
+
+    def observe(self) -> np.ndarray:
+        obs = np.zeros(11, dtype=np.float32)
+        obs[:2] = self.np_random.normal([5.0, -1.0], [2.0, 0.5])
+        for row in range(int(self.np_random.integers(self.min_rows, 4))):
+            obs[2 + 3 * row : 5 + 3 * row] = [*self.np_random.normal([40.0 + 10 * row, 3.0], [8.0, 1.0]), 1.0]
+        return obs
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return self.observe(), {}
+
+    def step(self, action):
+        return self.observe(), 0.0, False, False, {}

@@ -8,6 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from conftest import TableEnv
 from gymnasium import spaces
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
@@ -185,43 +186,22 @@ def test_vec_normalize_statistics_are_baked_in(tmp_path, format, policy, algorit
     assert np.abs(run_exported(path, format, obs) - expected).max() <= 1e-5
 
 
-class RowsEnv(gym.Env):
-    """Two entries, then 3 optional rows [x, y, mask] (the first 1 to 3 present): MaskedVecNormalize's layout."""
-
-    observation_space = spaces.Box(-np.inf, np.inf, (11,), dtype=np.float32)
-    action_space = spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
-
-    def observe(self) -> np.ndarray:
-        obs = np.zeros(11, dtype=np.float32)
-        obs[:2] = self.np_random.normal(size=2)
-        for row in range(int(self.np_random.integers(1, 4))):
-            obs[2 + 3 * row : 5 + 3 * row] = [*self.np_random.normal([30.0, 2.0], [5.0, 1.0]), 1.0]
-        return obs
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        return self.observe(), {}
-
-    def step(self, action):
-        return self.observe(), 0.0, False, False, {}
-
-
 @pytest.mark.parametrize("format", ["onnx", "torchscript"])
 def test_masked_vec_normalize_is_baked_in(tmp_path, format):
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 
-    vec_env = MaskedVecNormalize(DummyVecEnv([RowsEnv]), rows=(2, 3, 3), clip_obs=3.0)
+    vec_env = MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=(2, 3, 3), clip_obs=3.0)
     vec_env.seed(0)
     vec_env.reset()
     for _ in range(50):
         vec_env.step(np.zeros((1, 2), dtype=np.float32))
     model = DACERF("MlpPolicy", vec_env, **TINY)
     path = export_policy(model, tmp_path / "policy", format, vec_normalize=vec_env)
-    rows_env = RowsEnv()
-    rows_env.reset(seed=1)
-    obs = np.stack([rows_env.observe() for _ in range(200)])
+    table_env = TableEnv()
+    table_env.reset(seed=1)
+    obs = np.stack([table_env.observe() for _ in range(200)])
     assert (obs[:, 10] == 0).any() and (obs[:, 10] == 1).any()  # observations with and without a third row
     vec_env.training = False
     expected, _ = model.predict(vec_env.normalize_obs(obs), deterministic=True)

@@ -1,8 +1,8 @@
 """Tests of MaskedVecNormalize: observation normalisation of a table of optional rows (the driving vehicle slots)."""
 
-import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import TableEnv
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize, sync_envs_normalization
 
@@ -11,36 +11,12 @@ from sb3_dacerf.common.vec_normalize import MaskedRowsRunningMeanStd, MaskedVecN
 ROWS = (2, 3, 3)  # two leading entries, then 3 rows of [x, y, mask]
 
 
-class TableEnv(gym.Env):
-    """Observations of 2 entries and 3 rows [x, y, mask], the first ``min_rows`` to 3 of them present (drawn)."""
-
-    observation_space = spaces.Box(-np.inf, np.inf, shape=(11,), dtype=np.float32)
-    action_space = spaces.Box(-1, 1, shape=(1,), dtype=np.float32)
-
-    def __init__(self, min_rows: int = 1):
-        self.min_rows = min_rows
-
-    def observe(self) -> np.ndarray:
-        obs = np.zeros(11, dtype=np.float32)
-        obs[:2] = self.np_random.normal([5.0, -1.0], [2.0, 0.5])
-        for row in range(int(self.np_random.integers(self.min_rows, 4))):
-            obs[2 + 3 * row : 5 + 3 * row] = [*self.np_random.normal([40.0 + 10 * row, 3.0], [8.0, 1.0]), 1.0]
-        return obs
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        return self.observe(), {}
-
-    def step(self, action):
-        return self.observe(), 0.0, False, False, {}
-
-
 def collect(venv, steps: int) -> np.ndarray:
     venv.seed(0)
     venv.reset()
     raw = [venv.get_original_obs()]
     for _ in range(steps):
-        venv.step(np.zeros((venv.num_envs, 1), dtype=np.float32))
+        venv.step(np.zeros((venv.num_envs, *venv.action_space.shape), dtype=np.float32))
         raw.append(venv.get_original_obs())
     return np.concatenate(raw)
 
