@@ -111,36 +111,6 @@ def test_increments_integrate_to_paper_bounds():
     assert ego.speed == pytest.approx(0.0, abs=0.1)  # no reversing under negative acceleration
 
 
-@pytest.mark.parametrize(
-    ("distance", "lead_speed", "lane_offset", "expected"),
-    [
-        (20.0, 18.0, 0, 18.0),  # within the safe-following distance: the lead vehicle's speed
-        (60.0, 15.0, 0, 15.0 + np.sqrt(2 * 0.8 * (55.0 - 15.0))),  # braking at 0.8 m/s² from here still closes in time
-        (75.0, 22.0, 0, 24.0),  # far enough: the target speed
-        (20.0, 10.0, 1, 24.0),  # in the next lane: not in the ego's corridor
-    ],
-)
-def test_reference_speed_follows_traffic(distance, lead_speed, lane_offset, expected):
-    env, unwrapped, ego, lane = empty_highway(reference_speed_follows_traffic=True)
-    unwrapped.reference_speed = 24.0
-    lane_id = ego.lane_index[2] + (lane_offset if ego.lane_index[2] == 0 else -lane_offset)
-    add_vehicle(unwrapped, (*ego.lane_index[:2], lane_id), lane.local_coordinates(ego.position)[0] + distance, lead_speed)
-    scene = observe_scene(unwrapped)
-    assert scene.reference_speed == pytest.approx(expected)
-    # The waypoints are spaced by it and the speed-tracking term asks for it.
-    interval = unwrapped.config["reference_waypoint_interval"]
-    np.testing.assert_allclose(np.diff(scene.waypoints[:, 0]), expected * interval, rtol=1e-6)
-    _obs, _reward, _terminated, _truncated, info = env.step(np.zeros(2, dtype=np.float32))
-    assert info["target_speed"] == 24.0
-    assert info["reference_speed"] <= 24.0
-    assert info["reward_terms"]["tracking_speed"] == pytest.approx(
-        -3.0 * (np.sqrt(1 + (unwrapped.scene.ego[0] - info["reference_speed"]) ** 2) - 1)
-    )
-    # Off (the paper's setting): the target speed whatever is ahead.
-    unwrapped.config["reference_speed_follows_traffic"] = False
-    assert observe_scene(unwrapped).reference_speed == 24.0
-
-
 def test_observation_layout():
     _env, unwrapped, ego, lane = empty_highway()
     ego_s = lane.local_coordinates(ego.position)[0]

@@ -89,8 +89,6 @@ class PaperDrivingMixin(_HighwayEnv):
                 "huber_delta": 1.0,
                 **{f"rho_{name}": weight for name, weight in REWARD_WEIGHTS.items()},
                 "safe_time_headway": 1.0,  # Δt_safe [s]
-                # True: the target speed capped by what the vehicle ahead allows; False: the paper's constant one
-                "reference_speed_follows_traffic": False,
                 "safe_space_margin": [3.0, 1.0],  # [m] longitudinal, lateral clearance around the ego body
                 "boundary_threshold": 0.5,  # d_thresh [m]
                 "collision_penalty": "dynamic",  # of severe events: "dynamic" (see _severe_penalty) or a number

@@ -87,8 +87,7 @@ COMMON_RULES: dict[str, Rule] = {
     "centering_position": interval(0.0, 1.0),
     "offscreen_rendering": boolean(allow_none=True),
     **dict.fromkeys(
-        "show_trajectories render_agent manual_control real_time_rendering neighbour_vehicles_connected_lanes "
-        "reference_speed_follows_traffic".split(),
+        "show_trajectories render_agent manual_control real_time_rendering neighbour_vehicles_connected_lanes".split(),
         boolean(),
     ),
     **dict.fromkeys(

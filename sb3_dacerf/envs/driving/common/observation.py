@@ -58,22 +58,6 @@ def vehicle_gaps(vehicles: np.ndarray, ego_length: float, ego_width: float) -> t
     return gap_long, gap_lat, (x > 0) & (gap_lat < 0)
 
 
-def traffic_following_speed(
-    target_speed: float, vehicles: np.ndarray, ego_length: float, ego_width: float, deceleration: float, time_headway: float
-) -> float:
-    """
-    The target speed capped by the nearest vehicle ahead in the ego's corridor (``vehicles``: the scene's) at
-    ``v_lead + sqrt(2 b max(gap - v_lead Δt_safe, 0))``: braking at b still closes on it at Δt_safe of its speed.
-    """
-    gap_long, _, ahead = vehicle_gaps(vehicles, ego_length, ego_width)
-    if not ahead.any():
-        return target_speed
-    gaps = gap_long[ahead]
-    lead_speeds = np.maximum(vehicles[ahead, 4] * vehicles[ahead, 2], 0.0)
-    caps = lead_speeds + np.sqrt(2 * deceleration * np.maximum(gaps - lead_speeds * time_headway, 0.0))
-    return float(min(target_speed, caps.min()))
-
-
 def observe_scene(env: Any) -> Scene:
     """:return: what the ego of a driving env (after ``reset()``) perceives in its current state"""
     config = env.config
@@ -100,10 +84,6 @@ def observe_scene(env: Any) -> Scene:
 
     s, lateral = env.reference.project(ego.position)
     reference_speed = min(env.reference_speed, env.reference_speed_cap())
-    if config["reference_speed_follows_traffic"]:
-        reference_speed = traffic_following_speed(
-            reference_speed, vehicles, ego.LENGTH, ego.WIDTH, -config["acceleration_range"][0], config["safe_time_headway"]
-        )
     step = reference_speed * config["reference_waypoint_interval"]
     points, headings, curvatures = env.reference.at(s + step * np.arange(config["reference_waypoints"]))
     relative_headings = headings - ego.heading
