@@ -62,11 +62,12 @@ def autograd_action_gradient(q_function):
     return gradient
 
 
+#: MaskedVecNormalize's ``rows`` of TableEnv: two leading entries, then 3 rows of [x, y, mask]
+TABLE_ROWS = (2, 3, 3)
+
+
 class TableEnv(gym.Env):
-    """
-    Observations of 2 entries and 3 rows [x, y, mask], the first ``min_rows`` to 3 of them present (drawn):
-    MaskedVecNormalize's layout ``rows=(2, 3, 3)``.
-    """
+    """Observations of 2 entries and 3 rows [x, y, mask], the first ``min_rows`` to 3 of them present (drawn)."""
 
     observation_space = spaces.Box(-np.inf, np.inf, shape=(11,), dtype=np.float32)
     action_space = spaces.Box(-1, 1, shape=(2,), dtype=np.float32)

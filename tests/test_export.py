@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from conftest import TableEnv
+from conftest import TABLE_ROWS, TableEnv
 from gymnasium import spaces
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
@@ -192,7 +192,7 @@ def test_masked_vec_normalize_is_baked_in(tmp_path, format):
 
     from sb3_dacerf.common.vec_normalize import MaskedVecNormalize
 
-    vec_env = MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=(2, 3, 3), clip_obs=3.0)
+    vec_env = MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=TABLE_ROWS, clip_obs=3.0)
     vec_env.seed(0)
     vec_env.reset()
     for _ in range(50):

@@ -2,13 +2,11 @@
 
 import numpy as np
 import pytest
-from conftest import TableEnv
+from conftest import TABLE_ROWS, TableEnv
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize, sync_envs_normalization
 
 from sb3_dacerf.common.vec_normalize import MaskedRowsRunningMeanStd, MaskedVecNormalize
-
-ROWS = (2, 3, 3)  # two leading entries, then 3 rows of [x, y, mask]
 
 
 def collect(venv, steps: int) -> np.ndarray:
@@ -22,7 +20,7 @@ def collect(venv, steps: int) -> np.ndarray:
 
 
 def test_rows_get_the_pooled_statistics_of_present_rows_and_empty_rows_zeros():
-    venv = MaskedVecNormalize(DummyVecEnv([TableEnv, TableEnv]), rows=ROWS, norm_reward=False)
+    venv = MaskedVecNormalize(DummyVecEnv([TableEnv, TableEnv]), rows=TABLE_ROWS, norm_reward=False)
     raw = collect(venv, 200)
     table = raw[:, 2:].reshape(-1, 3)
     present = table[table[:, 2] == 1]
@@ -49,7 +47,7 @@ def test_empty_rows_stay_in_range_where_vecnormalize_clips_them():
     # -clip_obs (their variance was 0), MaskedVecNormalize gives them zeros.
     full = [lambda: TableEnv(min_rows=3)]
     plain = VecNormalize(DummyVecEnv(full), norm_reward=False)
-    masked = MaskedVecNormalize(DummyVecEnv(full), rows=ROWS, norm_reward=False)
+    masked = MaskedVecNormalize(DummyVecEnv(full), rows=TABLE_ROWS, norm_reward=False)
     for venv in (plain, masked):
         collect(venv, 100)
     sparse = np.array([4.0, -1.0, 50.0, 2.0, 1.0, 0, 0, 0, 0, 0, 0], dtype=np.float32)
@@ -58,15 +56,15 @@ def test_empty_rows_stay_in_range_where_vecnormalize_clips_them():
 
 
 def test_saves_loads_copies_and_syncs_as_vecnormalize_does(tmp_path):
-    venv = MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=ROWS, norm_reward=False)
+    venv = MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=TABLE_ROWS, norm_reward=False)
     collect(venv, 50)
-    obs = collect(MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=ROWS), 5)
+    obs = collect(MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=TABLE_ROWS), 5)
     venv.save(tmp_path / "stats.pkl")
     loaded = VecNormalize.load(tmp_path / "stats.pkl", DummyVecEnv([TableEnv]))
     assert isinstance(loaded, MaskedVecNormalize) and isinstance(loaded.obs_rms, MaskedRowsRunningMeanStd)
     loaded.training = False
     np.testing.assert_array_equal(loaded.normalize_obs(obs), venv.normalize_obs(obs))
-    evaluation = MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=ROWS, training=False)
+    evaluation = MaskedVecNormalize(DummyVecEnv([TableEnv]), rows=TABLE_ROWS, training=False)
     sync_envs_normalization(venv, evaluation)
     np.testing.assert_array_equal(evaluation.normalize_obs(obs), venv.normalize_obs(obs))
     copy = venv.obs_rms.copy()
@@ -98,4 +96,4 @@ class DictTableEnv(TableEnv):
 
 def test_refuses_observations_that_are_not_flat_boxes():
     with pytest.raises(ValueError, match=r"needs a flat Box observation space.*use VecNormalize"):
-        MaskedVecNormalize(DummyVecEnv([DictTableEnv]), rows=ROWS)
+        MaskedVecNormalize(DummyVecEnv([DictTableEnv]), rows=TABLE_ROWS)
