@@ -571,7 +571,7 @@ def _hard_braking_share(env, seeds) -> float:
 
 def test_settled_multilane_starts_in_a_flow():
     # Placed at 20-25 m/s with gaps from 15 m, dense traffic brakes hard in its first seconds, which an ego braking
-    # at 0.8 m/s² cannot follow; settled, every vehicle already follows its leader.
+    # at 0.8 m/s² cannot follow; settled, the traffic already follows its leaders and few vehicles brake that hard.
     placed = gym.make("DACERF-Multilane-v0", density="dense", config={"duration": 1})
     settled = gym.make("DACERF-Multilane-v0", density="dense", config={"duration": 1, "settle_duration": 5})
     assert _hard_braking_share(placed, range(5)) > 0.5
