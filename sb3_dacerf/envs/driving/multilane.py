@@ -4,9 +4,9 @@ IDM / MOBIL traffic that changes lanes and cuts in (only the ego's collisions ar
 centre line of the ego's lane or of an adjacent one, at a target speed drawn from ``reference_speed_range``. Only
 ``traffic_window`` around the ego is simulated: vehicles leaving it re-enter at the other end, keeping
 ``vehicles_count``. With ``settle_duration`` > 0 the traffic is first simulated for that long with the ego driven as
-one of its vehicles (IDM in its lane, at its reference speed), so that the episode starts from a flow in which every
-vehicle follows its leader. The episode ends on a collision or off the road, and is truncated (a success) after
-``duration``.
+one of its vehicles (IDM in its lane, at its reference speed), so that the episode starts from a flow that already
+follows its leaders instead of one braking hard to reach its gaps. The episode ends on a collision or off the road,
+and is truncated (a success) after ``duration``.
 """
 
 from __future__ import annotations
