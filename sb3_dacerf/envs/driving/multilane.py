@@ -3,10 +3,7 @@ Multi-lane highway of the paper (``DACERF-Multilane-v0``), on highway-env's ``Hi
 IDM / MOBIL traffic that changes lanes and cuts in (only the ego's collisions are checked). The reference is the
 centre line of the ego's lane or of an adjacent one, at a target speed drawn from ``reference_speed_range``. Only
 ``traffic_window`` around the ego is simulated: vehicles leaving it re-enter at the other end, keeping
-``vehicles_count``. With ``settle_duration`` > 0 the traffic is first simulated for that long with the ego driven as
-one of its vehicles (IDM in its lane, at its reference speed), so that the episode starts from a flow that already
-follows its leaders instead of one braking hard to reach its gaps. The episode ends on a collision or off the road,
-and is truncated (a success) after ``duration``.
+``vehicles_count``. The episode ends on a collision or off the road, and is truncated (a success) after ``duration``.
 """
 
 from __future__ import annotations
@@ -44,7 +41,6 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         "traffic_speed_range": interval(0.0, Vehicle.MAX_SPEED),
         "reference_speed_range": interval(0.0, Vehicle.MAX_SPEED),
         "reference_lane": choice(REFERENCE_LANES),
-        "settle_duration": number(0.0),
     }
     TRAFFIC_GAP = 15.0  #: [m] at least between the centres of two vehicles placed in the same lane
     EGO_CLEARANCE = (-20.0, 30.0)  #: [m] behind and ahead of the ego in its lane where no vehicle is placed
@@ -60,7 +56,6 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
                 "traffic_speed_range": [20.0, 25.0],  # [m/s] initial and desired speeds of the traffic
                 "reference_speed_range": [15.0, 25.0],  # [m/s] target speed of the ego
                 "reference_lane": "random",  # "random" (current or adjacent), "current", "left" or "right"
-                "settle_duration": 0.0,  # [s] of traffic simulated, the ego in it as an IDM vehicle, before the start
             }
         )
         return config
@@ -93,43 +88,13 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         self.road.vehicles.append(ego)
 
         reference_lane = network.get_lane(("0", "1", reference_lane_id))
-        end = x0 + Vehicle.MAX_SPEED * (config["settle_duration"] + config["duration"]) + 100.0
+        end = x0 + Vehicle.MAX_SPEED * config["duration"] + 100.0
         self.reference = ReferencePath.from_lanes([(reference_lane, x0 - 50.0, end)], step=10.0)
 
         behind, ahead = config["traffic_window"]
         self._pending_entries: list[bool] = []  # vehicles to re-enter: True ahead of the ego, False behind
         for _ in range(config["vehicles_count"]):
             self._place_traffic_vehicle(x0 + behind, x0 + ahead)
-        self._settle_traffic(round(config["settle_duration"] * config["simulation_frequency"]))
-
-    def _settle_traffic(self, steps: int) -> None:
-        """
-        Simulate ``steps`` physics steps of the traffic with an IDM vehicle (no lane changes, the reference speed as its
-        desired speed) in the ego's place, then put the ego where that vehicle ended, at its speed and heading.
-        """
-        if steps == 0:
-            return
-        ego, vehicles = self.vehicle, self.road.vehicles
-        stand_in = simulation.FastIDMVehicle(
-            self.road,
-            ego.position,
-            heading=ego.heading,
-            speed=ego.speed,
-            target_lane_index=ego.lane_index,
-            target_speed=self.reference_speed,
-            enable_lane_change=False,
-        )
-        vehicles[vehicles.index(ego)] = stand_in
-        self.controlled_vehicles = [stand_in]  # the traffic is placed and recycled around it
-        for _ in range(steps):
-            self.road.act()
-            self.road.step(1 / self.config["simulation_frequency"])
-            self._recycle_traffic()
-        ego.position, ego.heading, ego.speed = stand_in.position.copy(), stand_in.heading, stand_in.speed
-        ego.crashed = stand_in.crashed
-        ego.on_state_update()
-        vehicles[vehicles.index(stand_in)] = ego
-        self.controlled_vehicles = [ego]
 
     def _place_traffic_vehicle(self, low: float, high: float) -> bool:
         """:return: whether a traffic vehicle was put at a random free spot of a random lane between two abscissas [m]"""
@@ -158,10 +123,6 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
     def _simulate(self, action: np.ndarray | None = None) -> None:
         """Step the traffic, then move the vehicles that left the simulated window to its other end."""
         super()._simulate(action)
-        self._recycle_traffic()
-
-    def _recycle_traffic(self) -> None:
-        """Move the vehicles that left the simulated window around the ego to its other end."""
         behind, ahead = self.config["traffic_window"]
         ego_x = self.vehicle.position[0]
         for vehicle in [v for v in self.road.vehicles if v is not self.vehicle]:
