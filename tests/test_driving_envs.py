@@ -441,10 +441,8 @@ def test_reference_yields_at_the_stop_line_to_crossing_traffic():
     assert env.unwrapped.reference_speed_cap() == np.inf
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("density", ["sparse", "normal", "dense"])
-def test_standing_is_no_refuge_at_the_intersection(density):
-    """Under the default reward, standing is worth less than the scripted driver on every route (γ = 0.99)."""
+def standing_value_main(argv: list[str]) -> dict:
+    """``benchmarks/standing_value.py``'s ``main``."""
     import importlib.util
 
     path = os.path.join(os.path.dirname(__file__), os.pardir, "benchmarks", "standing_value.py")
@@ -452,12 +450,34 @@ def test_standing_is_no_refuge_at_the_intersection(density):
     standing_value = importlib.util.module_from_spec(spec)
     sys.path.insert(0, os.path.dirname(path))
     spec.loader.exec_module(standing_value)
+    return standing_value.main(argv)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("density", ["sparse", "normal", "dense"])
+def test_standing_is_no_refuge_at_the_intersection(density):
+    """Under the default reward, standing is worth less than the scripted driver on every route (γ = 0.99)."""
     from sb3_dacerf.envs.driving.intersection import DEFAULT_ROUTES
 
     for route in DEFAULT_ROUTES:
-        summary = standing_value.main(["--episodes", "4", "--density", density, "--config", json.dumps({"routes": [route]})])
+        summary = standing_value_main(["--episodes", "4", "--density", density, "--config", json.dumps({"routes": [route]})])
         row = summary[density, route]
-        assert row["scripted"] > row["standing"], (density, route, row)
+        assert row["driving"] > row["standing"], (density, route, row)
+
+
+@pytest.mark.slow
+def test_a_crash_is_no_refuge_at_the_intersection():
+    """
+    Under the default reward, on every route at every density, the shipped pure-RL driver is worth more than a severe
+    event at once (the penalty), and so is each episode it arrives in (γ = 0.99, the evaluations' starts).
+    """
+    driver = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "models", "dacerf_intersection_rl")
+    summary = standing_value_main(["--episodes", "12", "--density", "sparse", "normal", "dense", "--driver", driver])
+    penalty = make("DACERF-Intersection-v0").unwrapped.config["collision_penalty"]
+    assert {route for _, route in summary} == {"left", "right", "straight"}
+    for key, row in summary.items():
+        assert row["driving"] > -penalty, (key, row)
+        assert not row["lowest_arrival"] <= -penalty, (key, row)
 
 
 def test_intersection_wrong_exit_is_no_success():
@@ -590,12 +610,13 @@ def test_drawn_densities_refuse_config_keys_they_set():
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_ego_starts_near_its_reference_speed(env_id):
-    # A start far from the target speed makes leaving the road (-200) cheaper than catching up at ±0.8 m/s²
+    # A start far from the reference speed makes leaving the road (-200) cheaper than catching up at ±0.8 m/s²; at the
+    # intersection the reference speed may be the yielding one
     env = make(env_id)
     gaps = []
-    for seed in range(20):
-        env.reset(seed=seed)
-        gaps.append(abs(env.unwrapped.vehicle.speed - env.unwrapped.reference_speed))
+    for seed in range(50):
+        _, info = env.reset(seed=seed)
+        gaps.append(abs(env.unwrapped.vehicle.speed - info["reference_speed"]))
     assert max(gaps) < 2.0, gaps
 
 

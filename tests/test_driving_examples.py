@@ -525,7 +525,7 @@ def test_standing_value_compares_standing_with_the_scripted_driver(capsys):
     summary = standing_value.main(["--episodes", "3", "--stand-steps", "30", "--config", '{"routes": ["right"]}'])
     assert list(summary) == [("normal", "right")]
     # standing costs speed tracking at every step; the scripted driver's right turns are cheap
-    assert summary["normal", "right"]["standing"] < -100 < summary["normal", "right"]["scripted"]
+    assert summary["normal", "right"]["standing"] < -100 < summary["normal", "right"]["driving"]
     assert "| normal | right | 3 |" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         standing_value.main(["--gamma", "1"])

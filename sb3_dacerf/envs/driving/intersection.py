@@ -6,7 +6,8 @@ priority. The ego starts on the south arm 20-40 m before the junction or, with p
 into the exit lane, and follows a route drawn among ``routes`` (highway-env's lanes; the U-turn, not drawn by default,
 is a keyhole loop through the junction box) at a target speed drawn from ``reference_speed_ranges``. Between the ego
 and traffic, ``right_of_way`` ``"first_come"`` lets the one ahead go first; with ``yield_at_junction`` the reference
-speed yields at the stop line to crossing traffic (:meth:`IntersectionEnv.reference_speed_cap`). The severe-event
+speed yields at the stop line to crossing traffic (:meth:`IntersectionEnv.reference_speed_cap`), and an ego that
+must yield at its start starts no faster than that yielding speed, from which it can stop at the line. The severe-event
 penalty is the paper's constant 200. The episode ends on a collision, off the road, or 25 m into an exit lane (a
 success at the route's exit), and is truncated after 40 s.
 """
@@ -232,6 +233,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         self.road.vehicles.append(ego)
         # no collision at the start, as in highway-env
         self.road.vehicles = [v for v in self.road.vehicles if v is ego or np.linalg.norm(v.position - ego.position) >= 20]
+        ego.speed = min(ego.speed, self.reference_speed_cap())  # where it must yield, from the yielding speed
 
     def reference_speed_cap(self) -> float:
         """
