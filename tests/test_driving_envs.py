@@ -443,14 +443,9 @@ def test_reference_yields_at_the_stop_line_to_crossing_traffic():
 
 def standing_value_main(argv: list[str]) -> dict:
     """``benchmarks/standing_value.py``'s ``main``."""
-    import importlib.util
+    from test_driving_examples import BENCHMARKS, load_example
 
-    path = os.path.join(os.path.dirname(__file__), os.pardir, "benchmarks", "standing_value.py")
-    spec = importlib.util.spec_from_file_location("standing_value", path)
-    standing_value = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, os.path.dirname(path))
-    spec.loader.exec_module(standing_value)
-    return standing_value.main(argv)
+    return load_example("standing_value", BENCHMARKS).main(argv)
 
 
 @pytest.mark.slow
@@ -471,9 +466,11 @@ def test_a_crash_is_no_refuge_at_the_intersection():
     Under the default reward, on every route at every density, the shipped pure-RL driver is worth more than a severe
     event at once (the penalty), and so is each episode it arrives in (γ = 0.99, the evaluations' starts).
     """
+    from sb3_dacerf.envs.driving.intersection import IntersectionEnv
+
     driver = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "models", "dacerf_intersection_rl")
     summary = standing_value_main(["--episodes", "12", "--density", "sparse", "normal", "dense", "--driver", driver])
-    penalty = make("DACERF-Intersection-v0").unwrapped.config["collision_penalty"]
+    penalty = IntersectionEnv.default_config()["collision_penalty"]
     assert {route for _, route in summary} == {"left", "right", "straight"}
     for key, row in summary.items():
         assert row["driving"] > -penalty, (key, row)

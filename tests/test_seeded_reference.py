@@ -21,7 +21,7 @@ import torch as th
 
 from sb3_dacerf import DACER, DACERF, DSAC
 
-pytestmark = pytest.mark.slow  # 200 gradient steps of each algorithm, ~30 s: make check runs it
+pytestmark = pytest.mark.slow  # 150 gradient steps of each algorithm, ~10 s: make check runs it
 
 REFERENCE_DIR = Path(__file__).parent / "data" / "seeded_reference"
 SEED = 3
