@@ -39,6 +39,7 @@ from sb3_dacerf.envs.driving.scripted import ScriptedDriver
 sys.path.append(str(_checkout.ROOT / "examples"))  # evaluate_driving.py
 from evaluate_driving import evaluation_config, load_driver
 
+DEFAULT_ENV = "DACERF-Intersection-v0"
 BRAKE = np.array([-1.0, 0.0], dtype=np.float32)
 
 
@@ -81,7 +82,7 @@ def break_even(standing: float, arrivals: np.ndarray, crashes: np.ndarray) -> fl
 
 def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float]]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="DACERF-Intersection-v0")
+    parser.add_argument("--env", help=f"the env id (default: {DEFAULT_ENV}; with --driver, its own, which this must match)")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=10_000, help="first evaluation seed")
     parser.add_argument("--gamma", type=float, default=0.99)
@@ -94,7 +95,7 @@ def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float
         parser.error(f"--gamma must be in (0, 1), got {args.gamma}")
     summary = {}
     seeds = f"{args.seed}-{args.seed + args.episodes - 1}"
-    print(f"{args.driver or args.env}, config {args.config}, gamma {args.gamma}, seeds {seeds}")
+    print(f"{args.driver or args.env or DEFAULT_ENV}, config {args.config}, gamma {args.gamma}, seeds {seeds}")
     print(
         f"| density | route | episodes | standing | {args.driver or 'scripted driver'} | its arrival / collision "
         "| driving worth more "
@@ -103,10 +104,11 @@ def main(argv: list[str] | None = None) -> dict[tuple[str, str], dict[str, float
     print("|---|---|---|---|---|---|---|---|---|")
     for density in args.density:
         if args.driver:
-            driver = load_driver(args.driver, density=density, config=args.config)
+            driver = load_driver(args.driver, scenario=args.env, density=density, config=args.config)
             env, act = driver.env, driver.act
         else:
-            env, act = gym.make(args.env, config=evaluation_config(args.env, config=args.config), density=density), None
+            env_id = args.env or DEFAULT_ENV
+            env, act = gym.make(env_id, config=evaluation_config(env_id, config=args.config), density=density), None
         rows: dict[str, list[tuple[float, float, bool, bool]]] = defaultdict(list)
         for seed in range(args.seed, args.seed + args.episodes):
             stand = standing_value(env, seed, args.gamma, args.stand_steps)
