@@ -441,6 +441,44 @@ def test_reference_yields_at_the_stop_line_to_crossing_traffic():
     assert env.unwrapped.reference_speed_cap() == np.inf
 
 
+def test_an_ego_that_stopped_at_the_line_goes_first():
+    env, unwrapped = lone_intersection("straight")
+    ego = unwrapped.vehicle
+    add_junction_vehicle(unwrapped, 1, 3, before_line=10.0, speed=8.0)
+    ego.position, ego.speed = np.array([ego.position[0], 11.0 + ego.LENGTH / 2 + 1.5]), 0.8  # still rolling
+    assert unwrapped.reference_speed_cap() == pytest.approx(np.sqrt(2 * 0.5 * 0.5))
+    ego.speed = 0.3  # stopped within 2 m of the line: the cap is lifted, also once it drives on
+    assert unwrapped.reference_speed_cap() == np.inf
+    ego.speed = 3.0
+    assert unwrapped.reference_speed_cap() == np.inf
+    _, _, _, _, info = env.step(np.zeros(2, dtype=np.float32))
+    assert info["reference_speed"] == info["target_speed"]
+    env.reset(seed=0)
+    assert not unwrapped.stopped_at_line
+
+
+def test_a_driver_that_stops_at_the_line_is_not_held_there():
+    """Stop at the line whatever the reference says, then follow it: the yielding reference lets it go within seconds."""
+    from sb3_dacerf.envs.driving.scripted import ScriptedDriver
+
+    env = gym.make("DACERF-Intersection-v0", config=evaluation_config("DACERF-Intersection-v0"), density="normal")
+    unwrapped, holds = env.unwrapped, []
+    for seed in range(10_000, 10_012):
+        obs, _ = env.reset(seed=seed)
+        driver, done, stopped, hold = ScriptedDriver(env, yield_to_crossing=False), False, False, 0
+        while not done:
+            ego = unwrapped.vehicle
+            front = float(ego.position[1]) - ego.LENGTH / 2 - 11.0
+            action = driver(obs)
+            if not stopped and -0.5 < front < ego.speed**2 / 1.6 + 2.0:
+                action[0], stopped = -1.0, ego.speed < 0.05
+            obs, _, terminated, truncated, info = env.step(action)
+            done = terminated or truncated
+            hold += stopped and front > -0.5 and info["speed"] < 0.5
+        holds.append(hold / unwrapped.config["policy_frequency"])
+    assert max(holds) < 5.0, holds
+
+
 def standing_value_main(argv: list[str]) -> dict:
     """``benchmarks/standing_value.py``'s ``main``."""
     from test_driving_examples import BENCHMARKS, load_example
@@ -789,8 +827,8 @@ def test_junction_driver_waits_at_the_stop_line_where_the_reference_speed_is_0()
 
     env, unwrapped = lone_intersection("straight")
     ego = unwrapped.vehicle
-    # its front 1 m before the line, standing, and crossing traffic to yield to: the yielding reference speed is 0
-    ego.position, ego.speed = np.array([ego.position[0], 11.0 + ego.LENGTH / 2 + 1.0]), 0.0
+    # its front 1 m before the line, not yet stopped, and crossing traffic to yield to: the yielding reference speed is 0
+    ego.position, ego.speed = np.array([ego.position[0], 11.0 + ego.LENGTH / 2 + 1.0]), 0.6
     add_junction_vehicle(unwrapped, 1, 3, before_line=10.0, speed=8.0)
     assert unwrapped.reference_speed_cap() == 0.0
     action = JunctionDriver(env)(unwrapped.observation_type.observe())  # all waypoints at the ego's projection

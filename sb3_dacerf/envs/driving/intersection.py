@@ -6,8 +6,9 @@ priority. The ego starts on the south arm 20-40 m before the junction or, with p
 into the exit lane, and follows a route drawn among ``routes`` (highway-env's lanes; the U-turn, not drawn by default,
 is a keyhole loop through the junction box) at a target speed drawn from ``reference_speed_ranges``. Between the ego
 and traffic, ``right_of_way`` ``"first_come"`` lets the one ahead go first; with ``yield_at_junction`` the reference
-speed yields at the stop line to crossing traffic (:meth:`IntersectionEnv.reference_speed_cap`), and an ego that
-must yield at its start starts no faster than that yielding speed, from which it can stop at the line. The severe-event
+speed yields at the stop line to crossing traffic until the ego has stopped there
+(:meth:`IntersectionEnv.reference_speed_cap`), and an ego that must yield at its start starts no faster than that
+yielding speed, from which it can stop at the line. The severe-event
 penalty is the paper's constant 200. The episode ends on a collision, off the road, or 25 m into an exit lane (a
 success at the route's exit), and is truncated after 40 s.
 """
@@ -126,6 +127,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     """The urban intersection (see the module docstring); takes :class:`PaperDrivingMixin`'s arguments."""
 
     road: RegulatedRoad
+    stopped_at_line: bool  #: the ego has stopped at the stop line in this episode: the reference no longer yields
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
         "sparse": {"initial_vehicle_count": 5, "spawn_probability": 0.03},
         "normal": {"initial_vehicle_count": 10, "spawn_probability": 0.06},
@@ -142,6 +144,8 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     EVALUATION_CONFIG: ClassVar[dict] = {"reference_start_probability": 0.0}  #: evaluations start before the junction
     YIELD_DECELERATION = 0.5  #: [m/s²] of the yielding reference's stop at the line
     YIELD_MARGIN = 1.0  #: [s] widening of a traffic vehicle's time window at a conflict
+    STOP_ZONE = 2.0  #: [m] before the stop line within which an ego slower than ``STOP_SPEED`` has stopped there
+    STOP_SPEED = 0.5  #: [m/s]
     EXIT_DISTANCE = 25.0  #: [m] driven into an exit lane that ends the episode
 
     @classmethod
@@ -183,6 +187,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
     def _make_vehicles(self, n_vehicles: int = 10) -> None:
         """Spawn and warm up the traffic as highway-env does, then create the ego, its route and reference."""
         config, rng, network = self.config, self.np_random, self.road.network
+        self.stopped_at_line = False
         if not hasattr(self, "_conflicts"):  # the junction is the same in every episode
             self._conflicts = {arm: turn_conflicts(network, arm) for arm in (1, 2, 3)}
         for longitudinal in np.linspace(0, 80, config["initial_vehicle_count"])[:-1]:
@@ -242,14 +247,20 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         ignoring the reference does not release it) and a traffic vehicle's time window at a conflict of their paths
         (along its route, arriving no earlier than at 3 m/s² up to 9 m/s, leaving no later than at 2 m/s, widened by
         ``YIELD_MARGIN``) overlaps the ego's (at 0.7 m/s² up to its target speed, its body 3 m before and after the
-        conflict).
+        conflict). Once the ego has stopped at the line (front within ``STOP_ZONE``, speed below ``STOP_SPEED``) it
+        goes first, as at an all-way stop, and the cap is lifted for the rest of the episode: a yielding reference that
+        held a standing ego until the traffic left a gap long enough to cross from standstill would hold it for most
+        of an episode in normal traffic.
         """
-        if not self.config["yield_at_junction"] or self.route == "u_turn":
+        if not self.config["yield_at_junction"] or self.route == "u_turn" or self.stopped_at_line:
             return np.inf
         ego = self.vehicle
         front_to_line = float(ego.position[1]) - ego.LENGTH / 2 - JUNCTION_HALF_SIZE
         if front_to_line <= -0.5:
             return np.inf  # in the junction
+        if front_to_line < self.STOP_ZONE and ego.speed < self.STOP_SPEED:
+            self.stopped_at_line = True
+            return np.inf
         conflicts = self._conflicts[ROUTES[self.route]]
         to_turn = float(ego.position[1]) - JUNCTION_HALF_SIZE  # from the ego's centre to the start of its turn lane
         # the ego's time window at each conflict
