@@ -448,6 +448,7 @@ def test_an_ego_that_stopped_at_the_line_goes_first():
     ego.position, ego.speed = np.array([ego.position[0], 11.0 + ego.LENGTH / 2 + 1.5]), 0.8  # still rolling
     assert unwrapped.reference_speed_cap() == pytest.approx(np.sqrt(2 * 0.5 * 0.5))
     ego.speed = 0.3  # stopped within 2 m of the line: the cap is lifted, also once it drives on
+    unwrapped._note_stop_at_line()  # what each simulated step does
     assert unwrapped.reference_speed_cap() == np.inf
     ego.speed = 3.0
     assert unwrapped.reference_speed_cap() == np.inf
@@ -467,8 +468,7 @@ def test_a_driver_that_stops_at_the_line_is_not_held_there():
         obs, _ = env.reset(seed=seed)
         driver, done, stopped, hold = ScriptedDriver(env, yield_to_crossing=False), False, False, 0
         while not done:
-            ego = unwrapped.vehicle
-            front = float(ego.position[1]) - ego.LENGTH / 2 - 11.0
+            ego, front = unwrapped.vehicle, unwrapped.front_to_line()
             action = driver(obs)
             if not stopped and -0.5 < front < ego.speed**2 / 1.6 + 2.0:
                 action[0], stopped = -1.0, ego.speed < 0.05

@@ -239,6 +239,17 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         # no collision at the start, as in highway-env
         self.road.vehicles = [v for v in self.road.vehicles if v is ego or np.linalg.norm(v.position - ego.position) >= 20]
         ego.speed = min(ego.speed, self.reference_speed_cap())  # where it must yield, from the yielding speed
+        self._note_stop_at_line()
+
+    def front_to_line(self) -> float:
+        """[m] from the ego's front to the stop line of its arm, negative past it."""
+        ego = self.vehicle
+        return float(ego.position[1]) - ego.LENGTH / 2 - JUNCTION_HALF_SIZE
+
+    def _note_stop_at_line(self) -> None:
+        """Sets ``stopped_at_line`` once the ego stands at the line: its front within ``STOP_ZONE``, below ``STOP_SPEED``."""
+        if -0.5 < self.front_to_line() < self.STOP_ZONE and self.vehicle.speed < self.STOP_SPEED:
+            self.stopped_at_line = True
 
     def reference_speed_cap(self) -> float:
         """
@@ -255,12 +266,9 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
         if not self.config["yield_at_junction"] or self.route == "u_turn" or self.stopped_at_line:
             return np.inf
         ego = self.vehicle
-        front_to_line = float(ego.position[1]) - ego.LENGTH / 2 - JUNCTION_HALF_SIZE
+        front_to_line = self.front_to_line()
         if front_to_line <= -0.5:
             return np.inf  # in the junction
-        if front_to_line < self.STOP_ZONE and ego.speed < self.STOP_SPEED:
-            self.stopped_at_line = True
-            return np.inf
         conflicts = self._conflicts[ROUTES[self.route]]
         to_turn = float(ego.position[1]) - JUNCTION_HALF_SIZE  # from the ego's centre to the start of its turn lane
         # the ego's time window at each conflict
@@ -300,6 +308,10 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
             # highway-env's intersection-v0 sets these on the IDMVehicle class, which leaks into every other env.
             vehicle.DISTANCE_WANTED, vehicle.COMFORT_ACC_MAX, vehicle.COMFORT_ACC_MIN = 7.0, 6.0, -3.0
         return vehicle
+
+    def _simulate(self, action: np.ndarray | None = None) -> None:
+        super()._simulate(action)
+        self._note_stop_at_line()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """The paper's step, then highway-env's intersection traffic update: remove the vehicles that left, spawn new ones."""
