@@ -452,10 +452,26 @@ def test_an_ego_that_stopped_at_the_line_goes_first():
     assert unwrapped.reference_speed_cap() == np.inf
     ego.speed = 3.0
     assert unwrapped.reference_speed_cap() == np.inf
+    previous, rise = unwrapped.scene.reference_speed, unwrapped.REFERENCE_ACCELERATION / unwrapped.config["policy_frequency"]
     _, _, _, _, info = env.step(np.zeros(2, dtype=np.float32))
-    assert info["reference_speed"] == info["target_speed"]
+    assert info["reference_speed"] == pytest.approx(min(info["target_speed"], previous + rise))
     env.reset(seed=0)
     assert not unwrapped.stopped_at_line
+
+
+def test_the_reference_speed_rises_no_faster_than_the_ego_can_follow():
+    env, unwrapped = lone_intersection("straight")
+    ego = unwrapped.vehicle
+    add_junction_vehicle(unwrapped, 1, 3, before_line=10.0, speed=8.0)
+    ego.position, ego.speed = np.array([ego.position[0], 11.0 + ego.LENGTH / 2 + 1.0]), 0.6  # asked to stand
+    _, _, _, _, info = env.step(np.zeros(2, dtype=np.float32))
+    assert info["reference_speed"] == 0.0
+    ego.speed = 0.0  # stopped at the line: the cap is lifted, and the reference speed ramps up from 0
+    rise = unwrapped.REFERENCE_ACCELERATION / unwrapped.config["policy_frequency"]
+    for step in range(1, 4):
+        _, _, _, _, info = env.step(np.zeros(2, dtype=np.float32))
+        assert info["reference_speed"] == pytest.approx(step * rise)
+    assert info["target_speed"] > 1.0
 
 
 def test_a_driver_that_stops_at_the_line_is_not_held_there():

@@ -46,6 +46,8 @@ class PaperDrivingMixin(_HighwayEnv):
     EVALUATION_CONFIG: ClassVar[dict] = {}  #: the config under which evaluations run (over the trained config)
     reference: ReferencePath
     reference_speed: float
+    REFERENCE_ACCELERATION = 0.7  #: [m/s²] the fastest the reference speed rises (the ego accelerates at 0.8 at most)
+    reference_speed_ceiling: float  #: [m/s] the last step's reference speed raised by ``REFERENCE_ACCELERATION``
     scene: Scene
     density: str  # of the current episode
     density_weights: dict[str, float]  # the probability of each density an episode can have
@@ -151,6 +153,7 @@ class PaperDrivingMixin(_HighwayEnv):
             self.config.update(self.DENSITY_CONFIGS[self.density])
         super()._reset()
         self.vehicle.MIN_SPEED = 0.0  # the ego stops instead of reversing
+        self.reference_speed_ceiling = np.inf
         self.scene = observe_scene(self)
         # the ego's progress along its reference over the last stall_timeout seconds
         window = round(self.config["stall_timeout"] * self.config["policy_frequency"])
@@ -174,6 +177,7 @@ class PaperDrivingMixin(_HighwayEnv):
             self._warned_step_after_end = True
         self.time += 1 / self.config["policy_frequency"]
         self._simulate(action)
+        self.reference_speed_ceiling = self.scene.reference_speed + self.REFERENCE_ACCELERATION / self.config["policy_frequency"]
         self.scene = observe_scene(self)
         self._progress.append(self.scene.reference_progress)
         obs = self.observation_type.observe(self.scene)

@@ -83,7 +83,7 @@ def observe_scene(env: Any) -> Scene:
         vehicles[:, 2], vehicles[:, 3], vehicles[:, 4:] = np.cos(relative), np.sin(relative), data[:, 3:]
 
     s, lateral = env.reference.project(ego.position)
-    reference_speed = min(env.reference_speed, env.reference_speed_cap())
+    reference_speed = min(env.reference_speed, env.reference_speed_cap(), env.reference_speed_ceiling)
     step = reference_speed * config["reference_waypoint_interval"]
     points, headings, curvatures = env.reference.at(s + step * np.arange(config["reference_waypoints"]))
     relative_headings = headings - ego.heading
