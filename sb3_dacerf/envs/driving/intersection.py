@@ -9,7 +9,7 @@ and traffic, ``right_of_way`` ``"first_come"`` lets the one ahead go first; with
 speed yields at the stop line to crossing traffic until the ego has stopped there
 (:meth:`IntersectionEnv.reference_speed_cap`), and an ego that must yield at its start starts no faster than that
 yielding speed, from which it can stop at the line. The severe-event
-penalty is the paper's constant 200. The episode ends on a collision, off the road, or 25 m into an exit lane (a
+penalty is a constant 500. The episode ends on a collision, off the road, or 25 m into an exit lane (a
 success at the route's exit), and is truncated after 40 s.
 """
 
@@ -164,7 +164,7 @@ class IntersectionEnv(PaperDrivingMixin, HighwayIntersectionEnv):
                 "clear_crashed_traffic": True,  # remove the wrecks of traffic-only crashes
                 "right_of_way": "first_come",  # between the ego and traffic: the one ahead goes first; or "priority"
                 "yield_at_junction": True,  # the reference speed yields at the stop line; False: the paper's reference
-                "collision_penalty": 200.0,  # the paper's constant severe-event penalty
+                "collision_penalty": 500.0,  # a constant severe-event penalty (the paper's example: 200)
                 # The probability of a start on the reference path (with its curvature's steering) from 20 m before the
                 # junction to 10 m before the exit distance: the paper's randomised initial state (evaluations: 0)
                 "reference_start_probability": 0.5,
