@@ -13,7 +13,7 @@ from gymnasium import spaces
 from sb3_dacerf.envs.driving import SCRIPTED_DRIVER_NAMES
 from sb3_dacerf.envs.driving.common.abstract import PaperDrivingMixin
 from sb3_dacerf.envs.driving.common.observation import EGO_FEATURES, VEHICLE_FEATURES, WAYPOINT_FEATURES
-from sb3_dacerf.envs.driving.intersection import JUNCTION_HALF_SIZE, IntersectionEnv, travel_time
+from sb3_dacerf.envs.driving.intersection import IntersectionEnv, travel_time
 
 
 class ScriptedDriver:
@@ -116,7 +116,7 @@ class JunctionDriver(ScriptedDriver):
             in_corridor = x > 0 and abs(y) < 2.5
             if in_corridor and ((cos_phi > 0.5 and gap < 2.0 * max(v_x, 1.0) + 5) or gap < 4.0):
                 desired = -1.0
-        to_line = float(self._unwrapped.vehicle.position[1] - self.length / 2 - JUNCTION_HALF_SIZE)  # front to stop line
+        to_line = self._unwrapped.front_to_line()
         if to_line > -0.5:  # not yet committed to the junction
             stop = self._stop_point(waypoints[:, :2], v_x, reference_speed, to_line)
             if stop is not None:
