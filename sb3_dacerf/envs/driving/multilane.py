@@ -1,13 +1,17 @@
 """
 Multi-lane highway of the paper (``DACERF-Multilane-v0``), on highway-env's ``HighwayEnv``: ``lanes_count`` lanes of
-IDM / MOBIL traffic that changes lanes and cuts in (only the ego's collisions are checked). The reference is the
-centre line of the ego's lane or of an adjacent one, at a target speed drawn from ``reference_speed_range``. Only
-``traffic_window`` around the ego is simulated: vehicles leaving it re-enter at the other end, keeping
-``vehicles_count``. The episode ends on a collision or off the road, and is truncated (a success) after ``duration``.
+IDM / MOBIL traffic that changes lanes and cuts in (only the ego's collisions are checked), placed in a steady flow
+(each vehicle no faster than it can follow the one ahead). The reference is the centre line of the ego's lane or of an
+adjacent one, at a target speed drawn from ``reference_speed_range`` and capped by the vehicle ahead
+(:meth:`MultilaneEnv.reference_speed_cap`). Only ``traffic_window`` around the ego is simulated: vehicles leaving it
+re-enter at the other end, keeping ``vehicles_count``. The episode ends on a collision or off the road, and is
+truncated (a success) after ``duration``.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
 from typing import ClassVar
 
 import numpy as np
@@ -25,10 +29,36 @@ from sb3_dacerf.envs.driving.common.reference import ReferencePath
 REFERENCE_LANES = ("random", "current", "left", "right")
 
 
+def idm_steady_speed(follower: Vehicle, leader: Vehicle) -> float:
+    """
+    The highest speed [m/s], up to the follower's, at which an IDM follower's acceleration behind ``leader`` (same
+    straight lane) is not negative: the traffic starts in a steady flow instead of braking hard at once.
+    """
+    speed = follower.speed
+    if not hasattr(follower, "desired_gap"):
+        return speed
+    distance, leader_speed = leader.position[0] - follower.position[0], leader.speed
+    target_speed = max(getattr(follower, "target_speed", speed), 1e-3)
+    comfort = math.sqrt(-follower.COMFORT_ACC_MAX * follower.COMFORT_ACC_MIN)
+
+    def accelerates(v: float) -> bool:
+        desired_gap = follower.DISTANCE_WANTED + v * follower.TIME_WANTED + v * (v - leader_speed) / (2 * comfort)
+        return 1.0 - (v / target_speed) ** follower.DELTA - (max(desired_gap, 0.0) / distance) ** 2 >= 0.0
+
+    if accelerates(speed):
+        return speed
+    low, high = 0.0, speed
+    for _ in range(30):  # bisection: the acceleration falls with the speed
+        middle = (low + high) / 2
+        low, high = (middle, high) if accelerates(middle) else (low, middle)
+    return low
+
+
 class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
     """The multi-lane highway (see the module docstring); takes :class:`PaperDrivingMixin`'s arguments."""
 
     road: Road
+    reference_lane_id: int  #: the lane of the ego's reference path
     DENSITY_CONFIGS: ClassVar[dict[str, dict]] = {
         "sparse": {"vehicles_count": 6},
         "normal": {"vehicles_count": 12},
@@ -77,7 +107,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         offsets = {"random": (-1, 0, 1), "current": (0,), "left": (-1,), "right": (1,)}[config["reference_lane"]]
         ego_lanes = [i for i in range(lanes_count) if any(0 <= i + o < lanes_count for o in offsets)]
         ego_lane_id = int(rng.choice(ego_lanes))
-        reference_lane_id = ego_lane_id + int(rng.choice([o for o in offsets if 0 <= ego_lane_id + o < lanes_count]))
+        lane_offsets = [o for o in offsets if 0 <= ego_lane_id + o < lanes_count]
+        self.reference_lane_id = reference_lane_id = ego_lane_id + int(rng.choice(lane_offsets))
 
         ego_lane = network.get_lane(("0", "1", ego_lane_id))
         x0 = 20.0 - config["traffic_window"][0]
@@ -95,6 +126,37 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         self._pending_entries: list[bool] = []  # vehicles to re-enter: True ahead of the ego, False behind
         for _ in range(config["vehicles_count"]):
             self._place_traffic_vehicle(x0 + behind, x0 + ahead)
+        # Front to back in each lane, every vehicle starts no faster than it can follow the one ahead of it.
+        lanes: dict[LaneIndex, list[Vehicle]] = {}
+        for vehicle in self.road.vehicles:
+            lanes.setdefault(vehicle.lane_index, []).append(vehicle)
+        for vehicles in [*lanes.values(), *lanes.values()]:  # twice: the ego's cap also reads its reference lane
+            vehicles.sort(key=lambda v: -v.position[0])
+            for leader, follower in itertools.pairwise(vehicles):
+                if follower is ego:
+                    ego.speed = min(ego.speed, self.reference_speed_cap())
+                else:
+                    follower.speed = min(follower.speed, idm_steady_speed(follower, leader))
+
+    def reference_speed_cap(self) -> float:
+        """
+        The speed [m/s] from which braking at the ego's limit (``acceleration_range``) brings it to the speed of the
+        nearest traffic vehicle ahead in its lane or its reference lane at ``safe_time_headway`` behind it (``inf``
+        with none within ``perception_distance``).
+        """
+        ego, config = self.vehicle, self.config
+        lanes = {ego.lane_index[2], self.reference_lane_id}
+        ahead = [
+            v
+            for v in self.road.vehicles
+            if v is not ego and v.lane_index[2] in lanes and 0.0 < v.position[0] - ego.position[0] < config["perception_distance"]
+        ]
+        if not ahead:
+            return np.inf
+        leader = min(ahead, key=lambda v: v.position[0])
+        gap = leader.position[0] - ego.position[0] - (ego.LENGTH + leader.LENGTH) / 2
+        slack = max(gap - leader.speed * config["safe_time_headway"], 0.0)
+        return float(leader.speed + math.sqrt(2.0 * -config["acceleration_range"][0] * slack))
 
     def _place_traffic_vehicle(self, low: float, high: float) -> bool:
         """:return: whether a traffic vehicle was put at a random free spot of a random lane between two abscissas [m]"""
@@ -115,6 +177,9 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
                 continue
             vehicle = vehicle_type.make_on_lane(self.road, lane_index, x, speed=rng.uniform(*config["traffic_speed_range"]))
             vehicle.randomize_behavior()
+            ahead = [v for v in self.road.vehicles if v.lane_index == lane_index and v.position[0] > x]
+            if ahead:
+                vehicle.speed = min(vehicle.speed, idm_steady_speed(vehicle, min(ahead, key=lambda v: v.position[0])))
             vehicle.check_collisions = False  # only the ego's collisions matter, as in highway-fast-v0
             self.road.vehicles.append(vehicle)
             return True
