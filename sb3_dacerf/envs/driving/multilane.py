@@ -126,17 +126,19 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
         self._pending_entries: list[bool] = []  # vehicles to re-enter: True ahead of the ego, False behind
         for _ in range(config["vehicles_count"]):
             self._place_traffic_vehicle(x0 + behind, x0 + ahead)
-        # Front to back in each lane, every vehicle starts no faster than it can follow the one ahead of it.
+        # Front to back in each lane, every vehicle starts no faster than it can follow the one ahead of it; twice, as the
+        # ego's cap also reads its reference lane.
         lanes: dict[LaneIndex, list[Vehicle]] = {}
         for vehicle in self.road.vehicles:
             lanes.setdefault(vehicle.lane_index, []).append(vehicle)
-        for vehicles in [*lanes.values(), *lanes.values()]:  # twice: the ego's cap also reads its reference lane
-            vehicles.sort(key=lambda v: -v.position[0])
-            for leader, follower in itertools.pairwise(vehicles):
-                if follower is ego:
-                    ego.speed = min(ego.speed, self.reference_speed_cap())
-                else:
-                    follower.speed = min(follower.speed, idm_steady_speed(follower, leader))
+        for _ in range(2):
+            ego.speed = min(ego.speed, self.reference_speed_cap())
+            for vehicles in lanes.values():
+                vehicles.sort(key=lambda v: -v.position[0])
+                for leader, follower in itertools.pairwise(vehicles):
+                    if follower is not ego:
+                        follower.speed = min(follower.speed, idm_steady_speed(follower, leader))
+        ego.speed = min(ego.speed, self.reference_speed_cap())
 
     def reference_speed_cap(self) -> float:
         """
