@@ -300,6 +300,43 @@ def test_highway_success_at_time_limit():
     assert truncated and not terminated and info["is_success"]
 
 
+def test_highway_reference_speed_yields_to_the_vehicle_ahead():
+    env, unwrapped, ego, lane = empty_highway()
+    assert unwrapped.reference_speed_cap() == np.inf  # nobody ahead
+    x = lane.local_coordinates(ego.position)[0]
+    add_vehicle(unwrapped, ego.lane_index, x - 15.0, speed=5.0)  # behind: no cap
+    other_lane = ("0", "1", (ego.lane_index[2] + 1) % 3)
+    add_vehicle(unwrapped, other_lane, x + 20.0, speed=5.0)  # ahead, neither the ego's lane nor its reference's
+    assert unwrapped.reference_speed_cap() == np.inf
+    leader = add_vehicle(unwrapped, ego.lane_index, x + 45.0, speed=10.0)
+    # braking at 0.8 m/s² from the cap reaches the leader's 10 m/s with 1 s of headway (10 m) left: 35 m - 10 m of slack
+    cap = unwrapped.reference_speed_cap()
+    assert cap == pytest.approx(10.0 + np.sqrt(2 * 0.8 * (45.0 - leader.LENGTH - 10.0)))
+    assert cap < unwrapped.reference_speed
+    # the observation's waypoints and the speed-tracking term follow the capped speed
+    assert observe_scene(unwrapped).reference_speed == pytest.approx(cap)
+    _, _, _, _, info = env.step(np.zeros(2, dtype=np.float32))
+    assert info["reference_speed"] < info["target_speed"]
+    # at the safe headway behind it, the cap is the leader's speed
+    leader.position = ego.position + np.array([ego.LENGTH + leader.speed * 1.0, 0.0])
+    assert unwrapped.reference_speed_cap() == pytest.approx(leader.speed)
+
+
+@pytest.mark.parametrize("density", ["sparse", "normal", "dense"])
+def test_highway_traffic_starts_in_a_steady_flow(density):
+    env = gym.make("DACERF-Multilane-v0", density=density)
+    unwrapped = env.unwrapped
+    for seed in range(10):
+        env.reset(seed=seed)
+        ego = unwrapped.vehicle
+        # no traffic vehicle brakes at the start (its IDM acceleration behind its leader is not negative)
+        for vehicle in unwrapped.road.vehicles:
+            if vehicle is not ego:
+                assert vehicle.acceleration(vehicle, *unwrapped.road.neighbour_vehicles(vehicle)) > -0.01
+        # and the ego can follow the vehicle ahead braking at its limit
+        assert ego.speed <= unwrapped.reference_speed_cap() + 1e-9
+
+
 @pytest.mark.parametrize("route", ["straight", "left", "right", "u_turn"])
 def test_intersection_routes(route):
     env = make("DACERF-Intersection-v0", routes=[route])
