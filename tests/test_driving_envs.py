@@ -114,7 +114,7 @@ def test_increments_integrate_to_paper_bounds():
 def test_observation_layout():
     _env, unwrapped, ego, lane = empty_highway()
     ego_s = lane.local_coordinates(ego.position)[0]
-    ahead = add_vehicle(unwrapped, ego.lane_index, ego_s + 20.0, speed=18.0)
+    ahead = add_vehicle(unwrapped, ego.lane_index, ego_s + 20.0, speed=25.0)  # faster: it does not cap the reference
     side_lane = (ego.lane_index[0], ego.lane_index[1], 1 - min(ego.lane_index[2], 1))  # an adjacent lane
     add_vehicle(unwrapped, side_lane, ego_s - 40.0)
     obs = unwrapped.observation_type.observe()
@@ -317,9 +317,11 @@ def test_highway_reference_speed_yields_to_the_vehicle_ahead():
     assert observe_scene(unwrapped).reference_speed == pytest.approx(cap)
     _, _, _, _, info = env.step(np.zeros(2, dtype=np.float32))
     assert info["reference_speed"] < info["target_speed"]
-    # at the safe headway behind it, the cap is the leader's speed
+    # at the safe headway behind it, the cap is the leader's speed; closer, below it, so that the gap is restored
     leader.position = ego.position + np.array([ego.LENGTH + leader.speed * 1.0, 0.0])
     assert unwrapped.reference_speed_cap() == pytest.approx(leader.speed)
+    leader.position = ego.position + np.array([ego.LENGTH + leader.speed * 1.0 - 6.0, 0.0])
+    assert unwrapped.reference_speed_cap() == pytest.approx(leader.speed - np.sqrt(2 * 0.8 * 6.0))
 
 
 @pytest.mark.parametrize("density", ["sparse", "normal", "dense"])

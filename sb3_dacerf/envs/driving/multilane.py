@@ -143,8 +143,9 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
     def reference_speed_cap(self) -> float:
         """
         The speed [m/s] from which braking at the ego's limit (``acceleration_range``) brings it to the speed of the
-        nearest traffic vehicle ahead in its lane or its reference lane at ``safe_time_headway`` behind it (``inf``
-        with none within ``perception_distance``).
+        nearest traffic vehicle ahead in its lane or its reference lane at ``safe_time_headway`` behind it; closer
+        than that, as much below the leader's speed as it would be above it as far beyond (the gap is restored).
+        ``inf`` with no vehicle ahead within ``perception_distance``.
         """
         ego, config = self.vehicle, self.config
         lanes = {ego.lane_index[2], self.reference_lane_id}
@@ -157,8 +158,8 @@ class MultilaneEnv(PaperDrivingMixin, HighwayEnv):
             return np.inf
         leader = min(ahead, key=lambda v: v.position[0])
         gap = leader.position[0] - ego.position[0] - (ego.LENGTH + leader.LENGTH) / 2
-        slack = max(gap - leader.speed * config["safe_time_headway"], 0.0)
-        return float(leader.speed + math.sqrt(2.0 * -config["acceleration_range"][0] * slack))
+        slack = gap - leader.speed * config["safe_time_headway"]
+        return max(leader.speed + math.copysign(math.sqrt(2.0 * -config["acceleration_range"][0] * abs(slack)), slack), 0.0)
 
     def _place_traffic_vehicle(self, low: float, high: float) -> bool:
         """:return: whether a traffic vehicle was put at a random free spot of a random lane between two abscissas [m]"""
