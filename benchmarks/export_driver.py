@@ -2,7 +2,7 @@
 Export a driving run's checkpoint of ``benchmarks/learning_curves.py`` as a model that ``examples/evaluate_driving.py``
 and ``examples/render_driving.py`` load (the format of the models in ``examples/models/``):
 
-    python benchmarks/export_driver.py benchmarks/results/driving-rl/checkpoints/DACERF-Multilane-v0/dacerf-seed1 \\
+    python benchmarks/export_driver.py benchmarks/results/multilane/checkpoints/DACERF-Multilane-v0/dacerf-seed1 \\
         examples/models/dacerf_multilane_rl
     python examples/evaluate_driving.py examples/models/dacerf_multilane_rl --episodes 50
     python examples/render_driving.py --model examples/models/dacerf_multilane_rl
