@@ -221,3 +221,41 @@ def test_regime_options_refuse_what_does_not_fit(tmp_path, learning_curves, monk
         learning_curves.main()
     assert re.search(message, capsys.readouterr().err)
     assert not (tmp_path / "x").exists()
+
+
+def test_langevin_diagnostics_of_a_checkpoint(tmp_path, learning_curves):
+    """benchmarks/langevin_diagnostics.py: its Langevin loop is the model's, and it reads a run's checkpoint."""
+    import subprocess
+
+    import torch as th
+
+    spec = importlib.util.spec_from_file_location("langevin_diagnostics", BENCHMARKS / "langevin_diagnostics.py")
+    diagnostics = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(diagnostics)
+    learning_curves.run_one(job(tmp_path, "dacerf", 200))
+    folder = learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", "dacerf", 3)
+    model, *_ = learning_curves.load_checkpoint(learning_curves.algorithm_class("DACERF"), folder, "cpu")
+    batch = model.replay_buffer.sample(64)
+    for normalize in (False, True):
+        model.langevin_normalize_gradient = normalize
+        th.manual_seed(1)
+        parts = diagnostics.langevin_parts(model, batch.observations, batch.actions)
+        th.manual_seed(1)
+        assert th.equal(parts["targets"], model.langevin_targets(batch.observations, batch.actions))
+        # the noise summed over the steps: N(0, 2 η α N_l) per coordinate
+        expected_std = (2 * model.langevin_step_size * model.langevin_temperature * model.langevin_steps) ** 0.5
+        assert 0.8 < float(parts["diffusion"].std()) / expected_std < 1.2
+    assert diagnostics.episode_bounds(th.tensor([0, 1, 0, 0, 1, 0, 1, 0]).numpy(), 2) == [(2, 5), (5, 7)]
+
+    printed = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "langevin_diagnostics.py"), str(folder), "--batch", "64", "--episodes", "0"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "at 200 steps (last evaluation" in printed and "64 transitions of the last 200" in printed
+    assert re.search(r"Langevin \(20 steps of 0\.03, temperature 0\.01\): per coordinate the gradient moves \d", printed)
+    missing = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "langevin_diagnostics.py"), str(tmp_path)], capture_output=True, text=True
+    )
+    assert missing.returncode != 0 and "holds no checkpoint (no state.pkl)" in missing.stderr

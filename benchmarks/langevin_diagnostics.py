@@ -1,0 +1,149 @@
+"""
+What the Langevin targets and the critics of a DACERF run do, measured on its replay data: the figures behind the
+diagnoses of the scaling and driving results pages.
+
+Reads a checkpoint that ``learning_curves.py --checkpoint-freq`` keeps (``<out>/checkpoints/<env>/<variant>-seed<k>``:
+model, replay buffer, VecNormalize statistics; the checkpoint is unpickled, so only your own runs) and, on
+``--batch`` transitions drawn from the last ``--last`` of the buffer, prints:
+
+- ``|∇_a Q|``: the mean and median magnitude per action coordinate of ``∇_a min_j Q_j`` at the replay actions;
+- the Langevin targets ``a*`` of the model's own settings (Algorithm 1), their displacement from the replay actions
+  split into what the gradient steps and what the noise contribute (summed over the steps, before the clip), the
+  share of target and replay coordinates at an action bound, and ``min_j Q_j(s, a*) - min_j Q_j(s, a_B)``;
+- the share of the policy's deterministic action coordinates beyond ±0.99 on the same states;
+- on the last ``--episodes`` complete training episodes of the buffer: the critics' ``min_j Q_j(s_t, a_t)`` against the
+  discounted return to the episode's end, both averaged over the episodes' steps.
+
+    python benchmarks/langevin_diagnostics.py benchmarks/results/dmc-scaling/checkpoints/DMC-humanoid-stand-v0/dacerf-seed1
+"""
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import _checkout  # noqa: F401  (the repository's sb3_dacerf)
+import numpy as np
+import torch as th
+from learning_curves import load_checkpoint
+
+from sb3_dacerf import DACERF
+from sb3_dacerf.common.twin_critic import frozen
+from sb3_dacerf.dacerf.policies import MinQActionGradient
+
+
+def langevin_parts(model: DACERF, observations: th.Tensor, actions: th.Tensor) -> dict[str, th.Tensor]:
+    """The model's Langevin loop from ``actions``, keeping the sums of its gradient steps and of its noise apart."""
+    gradient_of = MinQActionGradient(model.critic, observations)
+    steps, step_size = model.langevin_steps, model.langevin_step_size
+    noise = th.randn((steps, *actions.shape)) * (2.0 * step_size * model.langevin_temperature) ** 0.5
+    action, drift, first_gradient = actions.clone(), th.zeros_like(actions), None
+    for step in range(steps):
+        gradient = gradient_of(action)
+        if model.langevin_normalize_gradient:
+            gradient = gradient / gradient.abs().mean().clamp(min=1.0)
+        first_gradient = gradient if first_gradient is None else first_gradient
+        drift += step_size * gradient
+        action = (action + step_size * gradient + noise[step]).clamp(-1.0, 1.0)
+    return dict(
+        targets=action,
+        gradient=gradient_of(actions) if first_gradient is None else first_gradient,
+        drift=drift,
+        diffusion=noise.sum(dim=0),
+        q_targets=gradient_of.min_q(action),
+        q_replay=gradient_of.min_q(actions),
+    )
+
+
+def episode_bounds(dones: np.ndarray, count: int) -> list[tuple[int, int]]:
+    """The last ``count`` complete episodes of a buffer's flat ``dones`` (time order): (first index, end index)."""
+    ends = np.flatnonzero(dones) + 1
+    if count <= 0 or len(ends) <= count:
+        return []
+    return [(int(start), int(end)) for start, end in zip(ends[-count - 1 : -1], ends[-count:], strict=True)]
+
+
+def critic_against_returns(model: DACERF, normalize: Any, arrays: dict[str, np.ndarray], count: int) -> tuple[float, float]:
+    """Mean ``min_j Q_j(s_t, a_t)`` and mean discounted return to the episode's end over the last ``count`` episodes."""
+    q_values, returns = [], []
+    for start, end in episode_bounds(arrays["dones"], count):
+        rewards = arrays["rewards"][start:end]
+        to_go = np.zeros(len(rewards))
+        running = 0.0
+        for index in range(len(rewards) - 1, -1, -1):
+            running = rewards[index] + model.gamma * running
+            to_go[index] = running
+        observations = arrays["observations"][start:end]
+        if normalize is not None:
+            observations = normalize.normalize_obs(observations)
+        with th.no_grad():
+            gradient_of = MinQActionGradient(model.critic, th.as_tensor(observations, dtype=th.float32))
+            q_values.append(gradient_of.min_q(th.as_tensor(arrays["actions"][start:end], dtype=th.float32)).squeeze(1))
+        returns.append(to_go)
+    return float(th.cat(q_values).mean()), float(np.concatenate(returns).mean())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoint", type=Path, help="a learning_curves.py checkpoint folder of a dacerf variant")
+    parser.add_argument("--batch", type=int, default=4096, help="replay transitions measured (default 4096)")
+    parser.add_argument("--last", type=int, default=100_000, help="drawn from the buffer's last that many (default 100k)")
+    parser.add_argument("--episodes", type=int, default=10, help="last complete episodes for the critic (default 10)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    if not (args.checkpoint / "state.pkl").exists():
+        sys.exit(f"{args.checkpoint} holds no checkpoint (no state.pkl): give a folder that learning_curves.py wrote")
+    th.set_num_threads(1)
+    th.manual_seed(args.seed)
+    model, rows, _ = load_checkpoint(DACERF, args.checkpoint, "cpu")
+    normalize = model.get_vec_normalize_env()
+    buffer = model.replay_buffer
+    size = buffer.buffer_size if buffer.full else buffer.pos
+    # The buffer's arrays in time order, one environment: (steps, 1, ...) -> (steps, ...)
+    order = np.roll(np.arange(size), -buffer.pos) if buffer.full else np.arange(size)
+    arrays = {name: getattr(buffer, name)[order][:, 0] for name in ("observations", "actions", "rewards", "dones")}
+    rng = np.random.default_rng(args.seed)
+    picked = rng.choice(np.arange(max(0, size - args.last), size), size=min(args.batch, size), replace=False)
+    observations = arrays["observations"][picked]
+    if normalize is not None:
+        observations = normalize.normalize_obs(observations)
+    obs = th.as_tensor(observations, dtype=th.float32)
+    actions = th.as_tensor(arrays["actions"][picked], dtype=th.float32)  # stored scaled to [-1, 1]
+
+    with frozen(model._critic_parameters()):
+        parts = langevin_parts(model, obs, actions)
+    with th.no_grad():
+        policy_actions = model.actor(obs, deterministic=True)
+    gradient = parts["gradient"].abs()
+    evaluated = f" (last evaluation {rows[-1]['mean_return']:.1f})" if rows else ""
+    print(
+        f"{args.checkpoint} at {model.num_timesteps} steps{evaluated}, "
+        f"{len(picked)} transitions of the last {min(args.last, size)}"
+    )
+    print(f"|grad_a Q| per coordinate: mean {gradient.mean():.4f}, median {gradient.median():.4f}")
+    print(
+        f"Langevin ({model.langevin_steps} steps of {model.langevin_step_size}, temperature {model.langevin_temperature}"
+        f"{', normalised gradient' if model.langevin_normalize_gradient else ''}): per coordinate the gradient moves "
+        f"{parts['drift'].abs().mean():.4f}, the noise {parts['diffusion'].abs().mean():.4f}, |a* - a_B| "
+        f"{(parts['targets'] - actions).abs().mean():.4f}"
+    )
+    at_bound = (parts["targets"].abs() >= 0.999).float().mean()
+    print(f"coordinates at a bound: targets {at_bound:.1%}, replay actions {(actions.abs() >= 0.999).float().mean():.1%}")
+    gain = parts["q_targets"] - parts["q_replay"]
+    print(f"Q(s, a*) - Q(s, a_B): mean {gain.mean():.4f}, median {gain.median():.4f}, > 0 in {(gain > 0).float().mean():.0%}")
+    print(
+        f"policy coordinates beyond ±0.99: {(policy_actions.abs() > 0.99).float().mean():.1%} "
+        f"(replay actions {(actions.abs() > 0.99).float().mean():.1%})"
+    )
+    if episode_bounds(arrays["dones"], args.episodes):
+        q_model, discounted = critic_against_returns(model, normalize, arrays, args.episodes)
+        print(
+            f"last {args.episodes} training episodes: min_j Q_j(s_t, a_t) {q_model:.2f}, "
+            f"discounted return to the episode's end {discounted:.2f}"
+        )
+    else:
+        print(f"critic against returns: not measured (the buffer holds fewer than {args.episodes + 1} episode ends)")
+
+
+if __name__ == "__main__":
+    main()
