@@ -24,12 +24,12 @@ step count, the normalisation statistics and, if saved, the replay buffer (witho
 empty buffer and waits ``--learning-starts`` steps again).
 
 Hyper-parameters: the algorithm's constructor defaults (for DACERF those of benchmarks/learning.md: entropy
-regulator on, actor loss weighted by the Langevin gain, lr 3e-4, batch 256, τ = 0.005), DACERF with
-``langevin_normalize_gradient=True`` as ``hyperparams/dacerf.yml`` sets it for these scenarios, whose returns are in
-the thousands; DACER and DSAC with their authors' defaults, SAC with SB3's (``--algo dacer``, ``dsac``,
-``sac``). ``--paper`` selects the paper's Table II values (learning rate 1e-4, replay batch 512, RAD, γ = 0.99,
-τ = 0.001, policy delay 3, Langevin η = 0.03, α = 0.01, 20 steps, no added exploration noise), of which DACER, DSAC
-and SAC take the learning rate, batch, τ and data regime. The paper trains 5e5 iterations.
+regulator on, actor loss weighted by the Langevin gain, lr 3e-4, batch 256, τ = 0.005); DACER and DSAC with their
+authors' defaults, SAC with SB3's (``--algo dacer``, ``dsac``, ``sac``); the driving results
+(docs/benchmarks/driving.md) add ``--steps-per-gradient 16 --vec-normalize masked``. ``--paper`` selects the paper's
+Table II values (learning rate 1e-4, replay batch 512, RAD, γ = 0.99, τ = 0.001, policy delay 3, Langevin η = 0.03,
+α = 0.01, 20 steps, no added exploration noise), of which DACER, DSAC and SAC take the learning rate, batch, τ and
+data regime. The paper trains 5e5 iterations.
 
 Data regime: by default every step of the ``--n-envs`` environments is followed by one gradient step (``--n-envs``
 transitions per gradient step). ``--steps-per-gradient S`` makes it S transitions per gradient step, as the paper's
@@ -230,9 +230,6 @@ def algorithm_kwargs(args: argparse.Namespace) -> dict:
         kwargs = {k: v for k, v in PAPER_HYPERPARAMETERS.items() if args.algo == "dacerf" or k in shared}
         # the paper's 200 transitions per gradient step, over all the --n-envs environments
         kwargs.update(steps_per_gradient_kwargs(PAPER_HYPERPARAMETERS["train_freq"], args.n_envs))
-    elif args.algo == "dacerf":
-        # The RL Zoo setting for the driving scenarios (hyperparams/dacerf.yml): returns in the thousands
-        kwargs["langevin_normalize_gradient"] = True
     if args.batch_size is not None:
         kwargs["batch_size"] = args.batch_size
     if args.steps_per_gradient is not None:

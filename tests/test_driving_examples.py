@@ -559,6 +559,16 @@ def test_paper_settings_carry_the_papers_data_regime_over_all_envs(algo):
     assert (kwargs["train_freq"], kwargs["gradient_steps"]) == (8, 1)
 
 
+@pytest.mark.parametrize("algo", ["dacerf", "dacer", "dsac", "sac"])
+def test_without_options_every_learner_trains_with_its_constructor_defaults(algo):
+    """As the driving results ran them (and the RL Zoo driving entries): nothing beyond the data regime asked for."""
+    train = load_example("train_driving")
+    parser = train.build_parser()
+    assert train.algorithm_kwargs(parser.parse_args(["--algo", algo])) == {}
+    kwargs = train.algorithm_kwargs(parser.parse_args(["--algo", algo, "--steps-per-gradient", "16"]))
+    assert kwargs == {"train_freq": 16, "gradient_steps": 1}
+
+
 @pytest.mark.parametrize("algo", ["dacer", "dsac"])
 def test_dacer_and_dsac_drivers_train_export_and_evaluate_deterministically(algo, tmp_path, capsys):
     """

@@ -48,7 +48,8 @@ _HOOK = sys.modules.get("sb3_dacerf_zoo_hook")
 HOOK_INSTALLED = _HOOK is not None and _HOOK.ZooFinder in sys.meta_path
 
 DRIVING_IDS = ["DACERF-Multilane-v0", "DACERF-Intersection-v0"]
-DRIVING_KEYS = ["langevin_normalize_gradient", "normalize"]  # what the driving entries set beyond the defaults
+# what the driving entries set beyond the defaults: the driving results' data regime and normaliser
+DRIVING_KEYS = ["train_freq", "gradient_steps", "normalize"]
 MUJOCO_IDS = [
     "Ant-v5",
     "HalfCheetah-v5",
@@ -191,10 +192,17 @@ def test_yaml_entries():
     for env_id in DMC_SCALING_IDS:
         assert dacerf[env_id]["train_freq"] == sac[env_id]["train_freq"] == 2, env_id
         assert dacerf[env_id]["gradient_steps"] == sac[env_id]["gradient_steps"] == 1, env_id
-    # the driving entries: the normalised Langevin gradient and normalised observations (as learning_curves.py ran them)
+    # the driving entries: as the driving results ran (learning_curves.py --steps-per-gradient 16 --vec-normalize masked
+    # --timesteps 1024000, the constructors' learning_starts), every learner alike
     for env_id in DRIVING_IDS:
-        assert dacerf[env_id]["langevin_normalize_gradient"] is True
-        assert eval(dacerf[env_id]["normalize"]) == eval(sac[env_id]["normalize"]) == {"norm_obs": True, "norm_reward": False}
+        for entry in (dacerf[env_id], sac[env_id]):
+            assert (entry["n_timesteps"], entry["learning_starts"], entry["train_freq"], entry["gradient_steps"]) == (
+                1_024_000,
+                100,
+                16,
+                1,
+            )
+            assert eval(entry["normalize"]) == {"norm_obs": True, "norm_reward": False, "masked": True}
     paper = dict(dacerf["paper"])
     assert paper.pop("policy") == "MlpPolicy"
     assert eval(paper.pop("policy_kwargs")) == PAPER_HYPERPARAMETERS["policy_kwargs"]
@@ -215,9 +223,9 @@ def test_dacer_yaml_entries():
         assert entry["n_timesteps"] == dacerf[env_id]["n_timesteps"], env_id
         for key in ("learning_starts", "train_freq", "gradient_steps"):  # the data regime, as DACERF's
             assert entry.get(key) == dacerf[env_id].get(key), (env_id, key)
-    # Every entry uses the constructor defaults (the driving ones with normalised observations)
+    # Every entry uses the constructor defaults (the driving ones with their data regime and normalised observations)
     for env_id in ["Pendulum-v1", *MUJOCO_IDS, *DMC_ENV_IDS, *DRIVING_IDS]:
-        driving_keys = {"normalize"} if env_id in DRIVING_IDS else set()
+        driving_keys = set(DRIVING_KEYS) if env_id in DRIVING_IDS else set()
         regime_keys = {"train_freq", "gradient_steps"} if env_id in DMC_SCALING_IDS else set()
         assert set(dacer[env_id]) <= {"policy", "n_timesteps", "learning_starts"} | driving_keys | regime_keys, env_id
 
