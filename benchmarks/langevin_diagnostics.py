@@ -12,7 +12,7 @@ model, replay buffer, VecNormalize statistics; the checkpoint is unpickled, so o
   share of target and replay coordinates at an action bound, and ``min_j Q_j(s, a*) - min_j Q_j(s, a_B)``;
 - the share of the policy's deterministic action coordinates beyond ±0.99 on the same states;
 - on the last ``--episodes`` complete training episodes of the buffer: the critics' ``min_j Q_j(s_t, a_t)`` against the
-  discounted return to the episode's end, both averaged over the episodes' steps.
+  discounted return (at a time limit continued by the critics, as their targets are), both averaged over the steps.
 
     python benchmarks/langevin_diagnostics.py benchmarks/results/dmc-scaling/checkpoints/DMC-humanoid-stand-v0/dacerf-seed1
 """
@@ -63,24 +63,37 @@ def episode_bounds(dones: np.ndarray, count: int) -> list[tuple[int, int]]:
     return [(int(start), int(end)) for start, end in zip(ends[-count - 1 : -1], ends[-count:], strict=True)]
 
 
-def critic_against_returns(model: DACERF, normalize: Any, arrays: dict[str, np.ndarray], count: int) -> tuple[float, float]:
-    """Mean ``min_j Q_j(s_t, a_t)`` and mean discounted return to the episode's end over the last ``count`` episodes."""
-    q_values, returns = [], []
+def min_q(model: DACERF, normalize: Any, observations: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
+    """``min_j Q_j(s, a)`` at raw ``observations``, of the given ``actions`` or of the policy's (with its noise)."""
+    if normalize is not None:
+        observations = normalize.normalize_obs(observations)
+    with th.no_grad():
+        states = th.as_tensor(observations, dtype=th.float32)
+        chosen = model.actor(states) if actions is None else th.as_tensor(actions, dtype=th.float32)
+        return MinQActionGradient(model.critic, states).min_q(chosen).squeeze(1).numpy()
+
+
+def critic_against_returns(
+    model: DACERF, normalize: Any, arrays: dict[str, np.ndarray], count: int
+) -> tuple[float, float, float]:
+    """
+    Over the last ``count`` episodes of the buffer: the mean ``min_j Q_j(s_t, a_t)``, the mean discounted return to
+    the episode's end (at a time limit continued, as the critics' targets do, by ``γ^(T-t) min_j Q_j(s_T, a')``,
+    ``a' ~ π``), and the share of those episodes that ended at a time limit.
+    """
+    q_values, returns, truncated = [], [], []
     for start, end in episode_bounds(arrays["dones"], count):
-        rewards = arrays["rewards"][start:end]
-        to_go = np.zeros(len(rewards))
-        running = 0.0
-        for index in range(len(rewards) - 1, -1, -1):
-            running = rewards[index] + model.gamma * running
+        at_time_limit = bool(arrays["timeouts"][end - 1])
+        last = arrays["next_observations"][end - 1 : end]
+        running = float(min_q(model, normalize, last)[0]) if at_time_limit else 0.0
+        to_go = np.zeros(end - start)
+        for index in range(end - start - 1, -1, -1):
+            running = arrays["rewards"][start + index] + model.gamma * running
             to_go[index] = running
-        observations = arrays["observations"][start:end]
-        if normalize is not None:
-            observations = normalize.normalize_obs(observations)
-        with th.no_grad():
-            gradient_of = MinQActionGradient(model.critic, th.as_tensor(observations, dtype=th.float32))
-            q_values.append(gradient_of.min_q(th.as_tensor(arrays["actions"][start:end], dtype=th.float32)).squeeze(1))
+        q_values.append(min_q(model, normalize, arrays["observations"][start:end], arrays["actions"][start:end]))
         returns.append(to_go)
-    return float(th.cat(q_values).mean()), float(np.concatenate(returns).mean())
+        truncated.append(at_time_limit)
+    return float(np.concatenate(q_values).mean()), float(np.concatenate(returns).mean()), float(np.mean(truncated))
 
 
 def main() -> None:
@@ -101,7 +114,10 @@ def main() -> None:
     size = buffer.buffer_size if buffer.full else buffer.pos
     # The buffer's arrays in time order, one environment: (steps, 1, ...) -> (steps, ...)
     order = np.roll(np.arange(size), -buffer.pos) if buffer.full else np.arange(size)
-    arrays = {name: getattr(buffer, name)[order][:, 0] for name in ("observations", "actions", "rewards", "dones")}
+    arrays = {
+        name: getattr(buffer, name)[order][:, 0]
+        for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+    }
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(np.arange(max(0, size - args.last), size), size=min(args.batch, size), replace=False)
     observations = arrays["observations"][picked]
@@ -136,10 +152,10 @@ def main() -> None:
         f"(replay actions {(actions.abs() > 0.99).float().mean():.1%})"
     )
     if episode_bounds(arrays["dones"], args.episodes):
-        q_model, discounted = critic_against_returns(model, normalize, arrays, args.episodes)
+        q_model, discounted, truncated = critic_against_returns(model, normalize, arrays, args.episodes)
         print(
-            f"last {args.episodes} training episodes: min_j Q_j(s_t, a_t) {q_model:.2f}, "
-            f"discounted return to the episode's end {discounted:.2f}"
+            f"last {args.episodes} training episodes ({truncated:.0%} at a time limit): min_j Q_j(s_t, a_t) "
+            f"{q_model:.2f}, discounted return {discounted:.2f}"
         )
     else:
         print(f"critic against returns: not measured (the buffer holds fewer than {args.episodes + 1} episode ends)")
