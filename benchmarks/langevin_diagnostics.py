@@ -3,8 +3,8 @@ What the Langevin targets and the critics of a DACERF run do, measured on its re
 diagnoses of the scaling and driving results pages.
 
 Reads a checkpoint that ``learning_curves.py --checkpoint-freq`` keeps (``<out>/checkpoints/<env>/<variant>-seed<k>``:
-model, replay buffer, VecNormalize statistics; the checkpoint is unpickled, so only your own runs) and, on
-``--batch`` transitions drawn from the last ``--last`` of the buffer, prints:
+model, replay buffer, VecNormalize statistics; the checkpoint is unpickled, so only your own runs) of DACERF or SAC
+and, on ``--batch`` transitions drawn from the last ``--last`` of the buffer, prints (the first three for DACERF):
 
 - ``|∇_a Q|``: the mean and median magnitude per action coordinate of ``∇_a min_j Q_j`` at the replay actions;
 - the Langevin targets ``a*`` of the model's own settings (Algorithm 1), their displacement from the replay actions
@@ -26,10 +26,14 @@ import _checkout  # noqa: F401  (the repository's sb3_dacerf)
 import numpy as np
 import torch as th
 from learning_curves import load_checkpoint
+from stable_baselines3 import SAC
 
 from sb3_dacerf import DACERF
+from sb3_dacerf.common.persistence import saved_algorithm_name
 from sb3_dacerf.common.twin_critic import frozen
 from sb3_dacerf.dacerf.policies import MinQActionGradient
+
+ALGORITHMS: dict[str, type] = {"dacerf": DACERF, "sac": SAC}
 
 
 def langevin_parts(model: DACERF, observations: th.Tensor, actions: th.Tensor) -> dict[str, th.Tensor]:
@@ -63,19 +67,17 @@ def episode_bounds(dones: np.ndarray, count: int) -> list[tuple[int, int]]:
     return [(int(start), int(end)) for start, end in zip(ends[-count - 1 : -1], ends[-count:], strict=True)]
 
 
-def min_q(model: DACERF, normalize: Any, observations: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
+def min_q(model: Any, normalize: Any, observations: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
     """``min_j Q_j(s, a)`` at raw ``observations``, of the given ``actions`` or of the policy's (with its noise)."""
     if normalize is not None:
         observations = normalize.normalize_obs(observations)
     with th.no_grad():
         states = th.as_tensor(observations, dtype=th.float32)
         chosen = model.actor(states) if actions is None else th.as_tensor(actions, dtype=th.float32)
-        return MinQActionGradient(model.critic, states).min_q(chosen).squeeze(1).numpy()
+        return th.cat(model.critic(states, chosen), dim=1).min(dim=1).values.numpy()
 
 
-def critic_against_returns(
-    model: DACERF, normalize: Any, arrays: dict[str, np.ndarray], count: int
-) -> tuple[float, float, float]:
+def critic_against_returns(model: Any, normalize: Any, arrays: dict[str, np.ndarray], count: int) -> tuple[float, float, float]:
     """
     Over the last ``count`` episodes of the buffer: the mean ``min_j Q_j(s_t, a_t)``, the mean discounted return to
     the episode's end (at a time limit continued, as the critics' targets do, by ``γ^(T-t) min_j Q_j(s_T, a')``,
@@ -96,9 +98,27 @@ def critic_against_returns(
     return float(np.concatenate(q_values).mean()), float(np.concatenate(returns).mean()), float(np.mean(truncated))
 
 
+def print_langevin(model: DACERF, obs: th.Tensor, actions: th.Tensor) -> None:
+    """The Langevin lines of the report, on the replay states ``obs`` and actions ``actions``."""
+    with frozen(model._critic_parameters()):
+        parts = langevin_parts(model, obs, actions)
+    gradient = parts["gradient"].abs()
+    print(f"|grad_a Q| per coordinate: mean {gradient.mean():.4f}, median {gradient.median():.4f}")
+    print(
+        f"Langevin ({model.langevin_steps} steps of {model.langevin_step_size}, temperature {model.langevin_temperature}"
+        f"{', normalised gradient' if model.langevin_normalize_gradient else ''}): per coordinate the gradient moves "
+        f"{parts['drift'].abs().mean():.4f}, the noise {parts['diffusion'].abs().mean():.4f}, |a* - a_B| "
+        f"{(parts['targets'] - actions).abs().mean():.4f}"
+    )
+    at_bound = (parts["targets"].abs() >= 0.999).float().mean()
+    print(f"coordinates at a bound: targets {at_bound:.1%}, replay actions {(actions.abs() >= 0.999).float().mean():.1%}")
+    gain = parts["q_targets"] - parts["q_replay"]
+    print(f"Q(s, a*) - Q(s, a_B): mean {gain.mean():.4f}, median {gain.median():.4f}, > 0 in {(gain > 0).float().mean():.0%}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checkpoint", type=Path, help="a learning_curves.py checkpoint folder of a dacerf variant")
+    parser.add_argument("checkpoint", type=Path, help="a learning_curves.py checkpoint folder of a dacerf or sac run")
     parser.add_argument("--batch", type=int, default=4096, help="replay transitions measured (default 4096)")
     parser.add_argument("--last", type=int, default=100_000, help="drawn from the buffer's last that many (default 100k)")
     parser.add_argument("--episodes", type=int, default=10, help="last complete episodes for the critic (default 10)")
@@ -108,7 +128,10 @@ def main() -> None:
         sys.exit(f"{args.checkpoint} holds no checkpoint (no state.pkl): give a folder that learning_curves.py wrote")
     th.set_num_threads(1)
     th.manual_seed(args.seed)
-    model, rows, _ = load_checkpoint(DACERF, args.checkpoint, "cpu")
+    name = saved_algorithm_name(args.checkpoint / "model.zip")
+    if name not in ALGORITHMS:
+        sys.exit(f"{args.checkpoint} holds a {name} model: this script reads DACERF and SAC checkpoints")
+    model, rows, _ = load_checkpoint(ALGORITHMS[name], args.checkpoint, "cpu")
     normalize = model.get_vec_normalize_env()
     buffer = model.replay_buffer
     size = buffer.buffer_size if buffer.full else buffer.pos
@@ -126,27 +149,15 @@ def main() -> None:
     obs = th.as_tensor(observations, dtype=th.float32)
     actions = th.as_tensor(arrays["actions"][picked], dtype=th.float32)  # stored scaled to [-1, 1]
 
-    with frozen(model._critic_parameters()):
-        parts = langevin_parts(model, obs, actions)
-    with th.no_grad():
-        policy_actions = model.actor(obs, deterministic=True)
-    gradient = parts["gradient"].abs()
     evaluated = f" (last evaluation {rows[-1]['mean_return']:.1f})" if rows else ""
     print(
         f"{args.checkpoint} at {model.num_timesteps} steps{evaluated}, "
         f"{len(picked)} transitions of the last {min(args.last, size)}"
     )
-    print(f"|grad_a Q| per coordinate: mean {gradient.mean():.4f}, median {gradient.median():.4f}")
-    print(
-        f"Langevin ({model.langevin_steps} steps of {model.langevin_step_size}, temperature {model.langevin_temperature}"
-        f"{', normalised gradient' if model.langevin_normalize_gradient else ''}): per coordinate the gradient moves "
-        f"{parts['drift'].abs().mean():.4f}, the noise {parts['diffusion'].abs().mean():.4f}, |a* - a_B| "
-        f"{(parts['targets'] - actions).abs().mean():.4f}"
-    )
-    at_bound = (parts["targets"].abs() >= 0.999).float().mean()
-    print(f"coordinates at a bound: targets {at_bound:.1%}, replay actions {(actions.abs() >= 0.999).float().mean():.1%}")
-    gain = parts["q_targets"] - parts["q_replay"]
-    print(f"Q(s, a*) - Q(s, a_B): mean {gain.mean():.4f}, median {gain.median():.4f}, > 0 in {(gain > 0).float().mean():.0%}")
+    if isinstance(model, DACERF):
+        print_langevin(model, obs, actions)
+    with th.no_grad():
+        policy_actions = model.actor(obs, deterministic=True)
     print(
         f"policy coordinates beyond ±0.99: {(policy_actions.abs() > 0.99).float().mean():.1%} "
         f"(replay actions {(actions.abs() > 0.99).float().mean():.1%})"

@@ -255,6 +255,11 @@ def test_langevin_diagnostics_of_a_checkpoint(tmp_path, learning_curves):
     ).stdout
     assert "at 200 steps (last evaluation" in printed and "64 transitions of the last 200" in printed
     assert re.search(r"Langevin \(20 steps of 0\.03, temperature 0\.01\): per coordinate the gradient moves \d", printed)
+    learning_curves.run_one(job(tmp_path, "sac", 200))
+    folder = learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", "sac", 3)
+    command = [sys.executable, str(BENCHMARKS / "langevin_diagnostics.py"), str(folder), "--batch", "64", "--episodes", "0"]
+    printed = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    assert "policy coordinates beyond ±0.99" in printed and "Langevin" not in printed
     missing = subprocess.run(
         [sys.executable, str(BENCHMARKS / "langevin_diagnostics.py"), str(tmp_path)], capture_output=True, text=True
     )
