@@ -192,10 +192,12 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
     :param seed: seed of the first episode, the next ones use the following seeds
     :return: TAR and its spread, arrival / collision / off-road rates, mean episode length, and the mean absolute
         distance to the reference path [m] and speed error [m/s] over all steps; ``by_outcome``: episodes, TAR and
-        mean length of the episodes that ended each way (arrival, collision, off road, time limit); at the
+        mean length of the episodes that ended each way (arrival, collision, off road, time limit); ``reward_terms``:
+        each term of the reward (``info["reward_terms"]``) summed over an episode, mean over the episodes; at the
         intersection also ``by_route``: episodes and rates for each route drawn (straight, left, right, U-turn)
     """
     returns, outcomes, lengths, routes = [], [], [], []
+    term_sums: dict[str, float] = {}
     lateral_errors, speed_errors = [], []  # per step, over all episodes
     for episode in range(n_episodes):
         obs, info = env.reset(seed=seed + episode)
@@ -206,6 +208,8 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
             total, length, done = total + float(reward), length + 1, terminated or truncated
             lateral_errors.append(abs(info["lateral_error"]))
             speed_errors.append(abs(info["speed"] - info["reference_speed"]))
+            for term, value in info["reward_terms"].items():
+                term_sums[term] = term_sums.get(term, 0.0) + float(value)
         returns.append(total)
         outcomes.append((info["is_success"], info["collision"], info["off_road"]))
         lengths.append(length)
@@ -223,6 +227,7 @@ def evaluate(act: Callable[[np.ndarray], np.ndarray], env: gym.Env, n_episodes: 
         "episode_length": float(np.mean(lengths)),
         "lateral_error": float(np.mean(lateral_errors)),
         "speed_error": float(np.mean(speed_errors)),
+        "reward_terms": {term: total / n_episodes for term, total in term_sums.items()},
     }
     # What each way of ending an episode scores: the TAR mixes how well the arriving episodes track their reference
     # with how often and how early the others end
@@ -259,6 +264,8 @@ def format_results(env_id: str, results: dict[str, Any], n_episodes: int) -> str
             f"{end} {part['tar']:.0f} ({part['episodes']} episodes, {part['episode_length']:.0f} steps)"
             for end, part in results["by_outcome"].items()
         )
+        + "\n  reward per episode by term: "
+        + ", ".join(f"{term} {value:.1f}" for term, value in sorted(results["reward_terms"].items(), key=lambda item: item[1]))
         + "".join(
             f"\n  {route}: {rates['episodes']} episodes, arrival {rates['arrival_rate']:.0%}, "
             f"collision {rates['collision_rate']:.0%}, off-road {rates['off_road_rate']:.0%}"

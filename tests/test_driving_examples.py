@@ -85,6 +85,7 @@ def test_evaluate_prints_the_paper_metrics(trained, capsys):
         "lateral_error",
         "speed_error",
         "by_outcome",
+        "reward_terms",
     }
     assert 1 <= results["episode_length"] <= 30 and np.isfinite(results["tar"])
     assert results["lateral_error"] >= 0 and results["speed_error"] >= 0 and "distance to the reference path" in out
@@ -163,6 +164,9 @@ def test_evaluate_breaks_the_intersection_down_by_route(capsys):
         results["episode_length"]
     )
     assert "  TAR by outcome: " in out
+    # the reward's terms, summed per episode, add up to the TAR
+    assert sum(results["reward_terms"].values()) == pytest.approx(results["tar"])
+    assert "  reward per episode by term: " in out
 
 
 def test_shipped_drivers_load_and_drive(capsys):
