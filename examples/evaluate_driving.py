@@ -1,8 +1,8 @@
 """
 Evaluate a trained driver (DACERF, DACER, DSAC or SAC) on the paper's driving scenarios: total average return
-(TAR), arrival, collision and off-road rates and mean episode length over N seeded episodes of deterministic actions
-(``predict(deterministic=True)``: DACERF's flow from a zero start, DACER's reverse diffusion from zero without
-posterior noise, DSAC's and SAC's ``tanh`` of the Gaussian's mean).
+(TAR), arrival, collision and off-road rates, mean episode length and the reward per term over N seeded episodes of
+deterministic actions (``predict(deterministic=True)``: DACERF's flow from a zero start, DACER's reverse diffusion
+from zero without posterior noise, DSAC's and SAC's ``tanh`` of the Gaussian's mean).
 
     python examples/evaluate_driving.py driving_multilane.zip --episodes 20
     python examples/evaluate_driving.py model.zip --env intersection --algo dsac --vec-normalize stats.json
