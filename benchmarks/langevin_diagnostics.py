@@ -31,6 +31,7 @@ from stable_baselines3 import SAC
 from sb3_dacerf import DACERF
 from sb3_dacerf.common.persistence import saved_algorithm_name
 from sb3_dacerf.common.twin_critic import frozen
+from sb3_dacerf.dacerf.dacerf import normalized_langevin_gradient
 from sb3_dacerf.dacerf.policies import MinQActionGradient
 
 ALGORITHMS: dict[str, type] = {"dacerf": DACERF, "sac": SAC}
@@ -45,7 +46,7 @@ def langevin_parts(model: DACERF, observations: th.Tensor, actions: th.Tensor) -
     for step in range(steps):
         gradient = gradient_of(action)
         if model.langevin_normalize_gradient:
-            gradient = gradient / gradient.abs().mean().clamp(min=1.0)
+            gradient = normalized_langevin_gradient(gradient)
         first_gradient = gradient if first_gradient is None else first_gradient
         drift += step_size * gradient
         action = (action + step_size * gradient + noise[step]).clamp(-1.0, 1.0)

@@ -300,9 +300,14 @@ def langevin_targets(
     for step in range(n_steps):
         gradient = action_gradient(action)  # ∇_a Q(s, a)
         if normalize_gradient:
-            gradient = gradient / gradient.abs().mean().clamp(min=1.0)
+            gradient = normalized_langevin_gradient(gradient)
         action = (action + step_size * gradient + noise[step]).clamp(-1.0, 1.0)  # a <- a + η ∇_a Q + sqrt(2ηα) ξ
     return action.detach()
+
+
+def normalized_langevin_gradient(gradient: th.Tensor) -> th.Tensor:
+    """``∇_a Q`` of a batch divided by ``max(1, mean |∇_a Q|)`` (``langevin_normalize_gradient``)."""
+    return gradient / gradient.abs().mean().clamp(min=1.0)
 
 
 def flow_matching_loss(
