@@ -31,7 +31,6 @@ from stable_baselines3 import SAC
 from sb3_dacerf import DACERF
 from sb3_dacerf.common.persistence import saved_algorithm_name
 from sb3_dacerf.common.twin_critic import frozen
-from sb3_dacerf.dacerf.dacerf import normalized_langevin_gradient
 from sb3_dacerf.dacerf.policies import MinQActionGradient
 
 ALGORITHMS: dict[str, type] = {"dacerf": DACERF, "sac": SAC}
@@ -45,8 +44,6 @@ def langevin_parts(model: DACERF, observations: th.Tensor, actions: th.Tensor) -
     action, drift, first_gradient = actions.clone(), th.zeros_like(actions), None
     for step in range(steps):
         gradient = gradient_of(action)
-        if model.langevin_normalize_gradient:
-            gradient = normalized_langevin_gradient(gradient)
         first_gradient = gradient if first_gradient is None else first_gradient
         drift += step_size * gradient
         action = (action + step_size * gradient + noise[step]).clamp(-1.0, 1.0)
@@ -107,7 +104,7 @@ def print_langevin(model: DACERF, obs: th.Tensor, actions: th.Tensor) -> None:
     print(f"|grad_a Q| per coordinate: mean {gradient.mean():.4f}, median {gradient.median():.4f}")
     print(
         f"Langevin ({model.langevin_steps} steps of {model.langevin_step_size}, temperature {model.langevin_temperature}"
-        f"{', normalised gradient' if model.langevin_normalize_gradient else ''}): per coordinate the gradient moves "
+        "): per coordinate the gradient moves "
         f"{parts['drift'].abs().mean():.4f}, the noise {parts['diffusion'].abs().mean():.4f}, |a* - a_B| "
         f"{(parts['targets'] - actions).abs().mean():.4f}"
     )

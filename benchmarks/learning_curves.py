@@ -75,7 +75,6 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
         ),
     ),
     "dacerf-delay1": ("DACERF", dict(policy_delay=1)),
-    "dacerf-gradnorm": ("DACERF", dict(langevin_normalize_gradient=True)),
     "dacerf-steps3": ("DACERF", dict(policy_kwargs=dict(n_sampling_steps=3))),
     # fewer, larger Langevin steps with the same total drift and noise (N_l * eta = 0.6, N_l * eta * alpha fixed)
     "dacerf-langevin5": ("DACERF", dict(langevin_steps=5, langevin_step_size=0.12)),
@@ -94,7 +93,6 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # a discount whose horizon 1 / (1 - gamma) = 500 steps covers a 400-step intersection episode (the driving
     # rewards are audited as undiscounted episode totals)
     "sac-gamma998": ("SAC", dict(gamma=0.998)),
-    "dacerf-gradnorm-gamma998": ("DACERF", dict(langevin_normalize_gradient=True, gamma=0.998)),
     "td3": ("TD3", {}),
     "tqc": ("TQC", {}),
     "crossq": ("CrossQ", {}),

@@ -105,7 +105,6 @@ def sample_dacerf_params(trial: optuna.Trial, *_: Any, policy_kwargs: Params | N
         "ent_coef": trial.suggest_categorical("ent_coef", ["auto", "off"]),
         "flow_matching_weights": trial.suggest_categorical("flow_matching_weights", ["gain", "paper"]),
         "critics": trial.suggest_categorical("critics", list(CRITICS)),
-        "langevin_normalize_gradient": trial.suggest_categorical("langevin_normalize_gradient", [False, True]),
         "n_steps": trial.suggest_categorical("n_steps", [1, 3, 5]),
     }
     return convert_dacerf_params(sampled, policy_kwargs)

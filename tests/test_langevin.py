@@ -76,31 +76,6 @@ def test_zero_temperature_is_deterministic_gradient_ascent(temperature):
     assert th.equal(first, second) == (temperature == 0.0)
 
 
-def test_normalized_gradient_makes_targets_independent_of_the_reward_scale():
-    """Q and 1000·Q give the same targets with the normalised gradient; unnormalised, 1000·Q runs them to the bounds."""
-    start = th.rand((256, 2), generator=th.Generator().manual_seed(3)) * 2 - 1
-    slope = th.tensor([[2.0], [-1.0]])
-
-    def targets(scale: float, normalize: bool) -> th.Tensor:
-        th.manual_seed(4)  # the same Langevin noise for every call
-        q_function = lambda a: scale * a @ slope  # noqa: E731  (mean |∇Q| = 1.5·scale: > 1 at both scales)
-        return langevin_targets(autograd_action_gradient(q_function), start, 20, 0.03, 0.01, normalize_gradient=normalize)
-
-    assert th.allclose(targets(1.0, True), targets(1000.0, True), atol=1e-5)
-    at_bounds = lambda actions: (actions.abs() > 0.999).float().mean()  # noqa: E731
-    assert at_bounds(targets(1000.0, False)) == 1.0 and at_bounds(targets(1000.0, True)) < 0.5
-
-
-def test_normalized_gradient_leaves_small_gradients_unchanged():
-    """Below a mean |∇Q| of 1 the normalisation divides by 1: the paper's update."""
-    start = th.rand((64, 2), generator=th.Generator().manual_seed(5)) * 0.2 - 0.1
-    gradient = autograd_action_gradient(lambda a: 0.5 * quadratic_q(th.zeros(2))(a))  # |∇Q| <= 0.1
-    th.manual_seed(6)
-    plain = langevin_targets(gradient, start, 20, 0.03, 0.01)
-    th.manual_seed(6)
-    assert th.equal(langevin_targets(gradient, start, 20, 0.03, 0.01, normalize_gradient=True), plain)
-
-
 def make_critic(
     activation_fn: type[nn.Module],
     observation_dim: int = 5,

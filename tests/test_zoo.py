@@ -287,15 +287,12 @@ def test_sampler_builds_dacerf():
         assert any(isinstance(m, EnsembleLayerNorm) for m in model.critic.modules()) == (critics == "layer_norm")
         assert isinstance(model.critic, BatchRenormCritic) == (critics == "batch_renorm")
         assert model.ent_coef == hyperparams["ent_coef"] and hyperparams["ent_coef"] in ("auto", 0.0)
-        assert model.langevin_normalize_gradient == hyperparams["langevin_normalize_gradient"]
         assert model.n_steps == hyperparams["n_steps"] in (1, 3, 5)
         seen |= {("ent_coef", hyperparams["ent_coef"]), ("critics", critics)}
-        seen.add(("normalize_gradient", hyperparams["langevin_normalize_gradient"]))
         study.tell(trial, 0.0)
     # both values of each switch were drawn: the sampler explores the options benchmarks/learning.md measures
     assert seen == {
         *[("ent_coef", "auto"), ("ent_coef", 0.0), ("critics", "mlp"), ("critics", "layer_norm"), ("critics", "batch_renorm")],
-        *[("normalize_gradient", False), ("normalize_gradient", True)],
     }
 
 
@@ -434,7 +431,6 @@ def test_optimize_two_workers_share_one_study(tmp_path):
         "ent_coef",
         "flow_matching_weights",
         "critics",
-        "langevin_normalize_gradient",
         "n_steps",
     }
 

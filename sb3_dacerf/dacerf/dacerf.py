@@ -34,8 +34,6 @@ class DACERF(TwinCriticAlgorithm):
     :param langevin_steps: Number of Langevin steps ``N_l`` that turn replay actions into targets ``a*``
     :param langevin_step_size: Langevin step size ``η_a``
     :param langevin_temperature: Temperature ``α`` of the energy-based target ``exp(Q / α)``
-    :param langevin_normalize_gradient: Divide ``∇_a Q`` by ``max(1, mean |∇_a Q|)`` over the batch in every Langevin
-        step, so that a step moves a coordinate by ``η_a`` on average at most whatever the reward's scale
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
     :param flow_matching_weights: How the two terms of the actor loss are weighted: ``"gain"`` (free of the reward's
         scale and shift) or ``"paper"`` (the paper's weight taken literally), see :func:`actor_loss_weights`
@@ -84,7 +82,6 @@ class DACERF(TwinCriticAlgorithm):
         langevin_steps: int = 20,
         langevin_step_size: float = 0.03,
         langevin_temperature: float = 0.01,
-        langevin_normalize_gradient: bool = False,
         flow_matching_coef: float = 1.0,
         flow_matching_weights: str = "gain",
         ent_coef: str | float = "auto",
@@ -101,7 +98,6 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_steps = langevin_steps
         self.langevin_step_size = langevin_step_size
         self.langevin_temperature = langevin_temperature
-        self.langevin_normalize_gradient = langevin_normalize_gradient
         self.flow_matching_coef = flow_matching_coef
         self.flow_matching_weights = flow_matching_weights
         self._n_actor_updates = 0
@@ -153,7 +149,7 @@ class DACERF(TwinCriticAlgorithm):
 
     def _langevin(self, gradient: MinQActionGradient, actions: th.Tensor) -> th.Tensor:
         steps, step_size, temperature = self.langevin_steps, self.langevin_step_size, self.langevin_temperature
-        return langevin_targets(gradient, actions, steps, step_size, temperature, self.langevin_normalize_gradient)
+        return langevin_targets(gradient, actions, steps, step_size, temperature)
 
     def actor_loss_terms(self, replay_data: Any) -> dict[str, th.Tensor]:
         """
@@ -280,7 +276,6 @@ def langevin_targets(
     n_steps: int,
     step_size: float,
     temperature: float,
-    normalize_gradient: bool = False,
 ) -> th.Tensor:
     """
     Algorithm 1 of the DACER-F paper (Langevin Optimize Action): move the replay actions ``a_B`` (``actions``)
@@ -290,7 +285,6 @@ def langevin_targets(
     :param action_gradient: ``∇_a Q(s, a)`` of a batch of actions, the states bound inside it
     :param step_size: ``η``
     :param temperature: ``α``
-    :param normalize_gradient: Divide ``∇_a Q`` by ``max(1, mean |∇_a Q|)`` over the batch at every step
     :return: The optimised actions ``a*``, detached
     """
     # ξ of every step, drawn at once and scaled by sqrt(2 η α)
@@ -299,15 +293,8 @@ def langevin_targets(
     action = actions.detach()  # a <- a_B
     for step in range(n_steps):
         gradient = action_gradient(action)  # ∇_a Q(s, a)
-        if normalize_gradient:
-            gradient = normalized_langevin_gradient(gradient)
         action = (action + step_size * gradient + noise[step]).clamp(-1.0, 1.0)  # a <- a + η ∇_a Q + sqrt(2ηα) ξ
     return action.detach()
-
-
-def normalized_langevin_gradient(gradient: th.Tensor) -> th.Tensor:
-    """``∇_a Q`` of a batch divided by ``max(1, mean |∇_a Q|)`` (``langevin_normalize_gradient``)."""
-    return gradient / gradient.abs().mean().clamp(min=1.0)
 
 
 def flow_matching_loss(
