@@ -31,29 +31,40 @@ from stable_baselines3 import SAC
 from sb3_dacerf import DACERF
 from sb3_dacerf.common.persistence import saved_algorithm_name
 from sb3_dacerf.common.twin_critic import frozen
+from sb3_dacerf.dacerf.dacerf import langevin_targets
 from sb3_dacerf.dacerf.policies import MinQActionGradient
 
 ALGORITHMS: dict[str, type] = {"dacerf": DACERF, "sac": SAC}
 
 
 def langevin_parts(model: DACERF, observations: th.Tensor, actions: th.Tensor) -> dict[str, th.Tensor]:
-    """The model's Langevin loop from ``actions``, keeping the sums of its gradient steps and of its noise apart."""
+    """
+    The model's Langevin targets from ``actions`` (its own loop, :func:`~sb3_dacerf.dacerf.dacerf.langevin_targets`),
+    with the sums over the steps of its gradient steps and of its noise (the noise drawn again from the same random
+    state), ``∇_a Q`` at the replay actions and ``min_j Q_j`` at both ends.
+    """
     gradient_of = MinQActionGradient(model.critic, observations)
+    gradients: list[th.Tensor] = []
+
+    def recorded(action: th.Tensor) -> th.Tensor:
+        gradients.append(gradient_of(action))
+        return gradients[-1]
+
     steps, step_size = model.langevin_steps, model.langevin_step_size
-    noise = th.randn((steps, *actions.shape)) * (2.0 * step_size * model.langevin_temperature) ** 0.5
-    action, drift, first_gradient = actions.clone(), th.zeros_like(actions), None
-    for step in range(steps):
-        gradient = gradient_of(action)
-        first_gradient = gradient if first_gradient is None else first_gradient
-        drift += step_size * gradient
-        action = (action + step_size * gradient + noise[step]).clamp(-1.0, 1.0)
+    before = th.get_rng_state()
+    targets = langevin_targets(recorded, actions, steps, step_size, model.langevin_temperature)
+    after = th.get_rng_state()
+    th.set_rng_state(before)
+    diffusion = th.randn((steps, *actions.shape)).sum(dim=0) * (2.0 * step_size * model.langevin_temperature) ** 0.5
+    th.set_rng_state(after)
+    q_replay = gradient_of.start_min_q if gradients else gradient_of.min_q(actions)  # Q(s, a_B) of the first step
     return dict(
-        targets=action,
-        gradient=gradient_of(actions) if first_gradient is None else first_gradient,
-        drift=drift,
-        diffusion=noise.sum(dim=0),
-        q_targets=gradient_of.min_q(action),
-        q_replay=gradient_of.min_q(actions),
+        targets=targets,
+        gradient=gradients[0] if gradients else gradient_of(actions),
+        drift=step_size * sum(gradients, th.zeros_like(actions)),
+        diffusion=diffusion,
+        q_targets=gradient_of.min_q(targets),
+        q_replay=q_replay,
     )
 
 

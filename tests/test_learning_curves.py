@@ -245,20 +245,16 @@ def test_langevin_diagnostics_of_a_checkpoint(tmp_path, learning_curves):
     assert 0.8 < float(parts["diffusion"].std()) / expected_std < 1.2
     assert diagnostics.episode_bounds(th.tensor([0, 1, 0, 0, 1, 0, 1, 0]).numpy(), 2) == [(2, 5), (5, 7)]
 
-    printed = subprocess.run(
-        [sys.executable, str(BENCHMARKS / "langevin_diagnostics.py"), str(folder), "--batch", "64", "--episodes", "0"],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
+    def diagnose(checkpoint: Path, *options: str, check: bool = True) -> subprocess.CompletedProcess:
+        command = [sys.executable, str(BENCHMARKS / "langevin_diagnostics.py"), str(checkpoint), *options]
+        return subprocess.run(command, capture_output=True, text=True, check=check)
+
+    printed = diagnose(folder, "--batch", "64", "--episodes", "0").stdout
     assert "at 200 steps (last evaluation" in printed and "64 transitions of the last 200" in printed
     assert re.search(r"Langevin \(20 steps of 0\.03, temperature 0\.01\): per coordinate the gradient moves \d", printed)
     learning_curves.run_one(job(tmp_path, "sac", 200))
     folder = learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", "sac", 3)
-    command = [sys.executable, str(BENCHMARKS / "langevin_diagnostics.py"), str(folder), "--batch", "64", "--episodes", "0"]
-    printed = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    printed = diagnose(folder, "--batch", "64", "--episodes", "0").stdout
     assert "policy coordinates beyond ±0.99" in printed and "Langevin" not in printed
-    missing = subprocess.run(
-        [sys.executable, str(BENCHMARKS / "langevin_diagnostics.py"), str(tmp_path)], capture_output=True, text=True
-    )
+    missing = diagnose(tmp_path, check=False)
     assert missing.returncode != 0 and "holds no checkpoint (no state.pkl)" in missing.stderr
