@@ -62,7 +62,9 @@ def test_train_prints_progress_and_saves_model_stats_and_metadata(trained_sac):
     # progress every 100 steps: episodes so far and their outcome rates (3 s episodes: several per 100 steps)
     progress = [line for line in out.splitlines() if "/200 steps" in line]
     assert len(progress) == 2 and all("episodes; last" in line and "off-road" in line for line in progress), out
-    assert "off-road rate" in out.splitlines()[-2] and out.splitlines()[-1].startswith("  TAR by outcome: ")
+    lines = out.splitlines()
+    assert "off-road rate" in lines[-3] and lines[-2].startswith("  TAR by outcome: ")
+    assert lines[-1].startswith("  reward per episode by term: ") and "collision" in lines[-1], lines[-1]
     for suffix in (".zip", ".json", "_vecnormalize.json"):
         assert os.path.isfile(trained_sac + suffix), suffix
     with open(trained_sac + ".json") as file:
