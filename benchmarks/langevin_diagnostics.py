@@ -114,10 +114,9 @@ def print_langevin(model: DACERF, obs: th.Tensor, actions: th.Tensor) -> None:
     gradient = parts["gradient"].abs()
     print(f"|grad_a Q| per coordinate: mean {gradient.mean():.4f}, median {gradient.median():.4f}")
     print(
-        f"Langevin ({model.langevin_steps} steps of {model.langevin_step_size}, temperature {model.langevin_temperature}"
-        "): per coordinate the gradient moves "
-        f"{parts['drift'].abs().mean():.4f}, the noise {parts['diffusion'].abs().mean():.4f}, |a* - a_B| "
-        f"{(parts['targets'] - actions).abs().mean():.4f}"
+        f"Langevin ({model.langevin_steps} steps of {model.langevin_step_size}, temperature {model.langevin_temperature}): "
+        f"per coordinate the gradient moves {parts['drift'].abs().mean():.4f}, the noise "
+        f"{parts['diffusion'].abs().mean():.4f}, |a* - a_B| {(parts['targets'] - actions).abs().mean():.4f}"
     )
     at_bound = (parts["targets"].abs() >= 0.999).float().mean()
     print(f"coordinates at a bound: targets {at_bound:.1%}, replay actions {(actions.abs() >= 0.999).float().mean():.1%}")
