@@ -62,6 +62,8 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-alpha1": ("DACERF", dict(ent_coef="auto_1")),
     "dacerf-ln": ("DACERF", dict(policy_kwargs=dict(critic="layer_norm"))),  # = the defaults (named so in earlier results)
     "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic="mlp"))),  # SB3's MLP critics
+    # DSAC-T's Gaussian critics and their loss (the official DACER's critics)
+    "dacerf-dist": ("DACERF", dict(policy_kwargs=dict(distributional_critic=True))),
     # CrossQ's learning rate 1e-3 and Adam betas (0.5, 0.999), with the default critics and their targets
     "dacerf-lr": ("DACERF", dict(learning_rate=1e-3, policy_kwargs=dict(optimizer_kwargs=dict(betas=(0.5, 0.999))))),
     # CrossQ's critics: batch renormalisation, no target networks (same width, learning rate and Adam as the defaults)

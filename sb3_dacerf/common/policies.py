@@ -250,12 +250,14 @@ class EnsembleCritic(BaseModel):
         normalize_images: bool = True,
         n_critics: int = 2,
         share_features_extractor: bool = True,
+        distributional: bool = False,
     ):
         super().__init__(
             observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
         )
         self.share_features_extractor = share_features_extractor
         self.n_critics = n_critics
+        self.distributional = distributional
         input_dim = features_dim + get_action_dim(action_space)
         # Each member network as create_mlp builds it (the same random draws), its normalisation layers already ensemble
         # layers of all the members (ensemble_of keeps the first member's)
@@ -263,12 +265,24 @@ class EnsembleCritic(BaseModel):
             name: [functools.partial(module, n_critics) for module in getattr(self, name)]
             for name in ("pre_linear_modules", "post_linear_modules")
         }
-        members = [nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn, **normalisation)) for _ in range(n_critics)]
+        n_outputs = 2 if distributional else 1  # a distributional critic's second output is its standard deviation's
+        members = [
+            nn.Sequential(*create_mlp(input_dim, n_outputs, net_arch, activation_fn, **normalisation)) for _ in range(n_critics)
+        ]
         self.ensemble = nn.Sequential(*[ensemble_of(list(layers)) for layers in zip(*members, strict=True)])
 
     def q_values_of_features(self, features: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        """Every critic's ``Q_j(s, a)`` ``(n_critics, batch, 1)`` from the state features."""
-        return self.ensemble(th.cat([features, actions], dim=1))
+        """Every critic's ``Q_j(s, a)`` ``(n_critics, batch, 1)`` from the state features (a distributional
+        critic's mean)."""
+        return self.ensemble(th.cat([features, actions], dim=1))[..., :1]
+
+    def distributions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """A distributional critic's means ``Q_j(s, a)`` and standard deviations ``σ_j(s, a) = softplus(·)`` of its
+        Gaussian returns, each ``(n_critics, batch, 1)``."""
+        with th.set_grad_enabled(not self.share_features_extractor):
+            features = self.extract_features(obs, self.features_extractor)
+        outputs = self.ensemble(th.cat([features, actions], dim=1))
+        return outputs[..., :1], F.softplus(outputs[..., 1:])
 
     def q_values(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
         """Every critic's ``Q_j(s, a)``, ``(n_critics, batch, 1)`` (no gradient to a features extractor shared with the actor)."""
@@ -396,6 +410,7 @@ class TwinCriticPolicy(BasePolicy):
         share_features_extractor: bool = False,
         actor_kwargs: dict[str, Any] | None = None,
         critic: str = "mlp",
+        distributional_critic: bool = False,
     ):
         if critic not in CRITICS:
             raise ValueError(f"Invalid critic={critic!r}: it must be one of {', '.join(map(repr, CRITICS))}.")
@@ -421,6 +436,8 @@ class TwinCriticPolicy(BasePolicy):
         self.actor_kwargs = {**shared, "activation_fn": activation_fn, "net_arch": actor_arch, **self.actor_options}
         self.critic_kwargs = {**shared, "activation_fn": activation_fn, "net_arch": critic_arch, "n_critics": n_critics}
         self.critic_kwargs.update(share_features_extractor=share_features_extractor)
+        if distributional_critic:
+            self.critic_kwargs.update(distributional=True)
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -455,6 +472,7 @@ class TwinCriticPolicy(BasePolicy):
             features_extractor_kwargs=self.features_extractor_kwargs,
             share_features_extractor=self.share_features_extractor,
             critic=self.critic_kind,
+            distributional_critic=self.critic_kwargs.get("distributional", False),
             **self.actor_options,
         )
         return data

@@ -207,10 +207,12 @@ def written_out_layers(critic: EnsembleCritic) -> tuple[list[_Block], tuple[th.T
             layers[-1][3] = module
         else:
             raise _unsupported(critic)
-    output_ok = len(layers) >= 2 and layers[-1][2:] == [None, None] and layers[-1][0].shape[2] == 1 and pending is None
-    if not output_ok or any(layer[3] is None for layer in layers[:-1]):
+    n_outputs = 2 if critic.distributional else 1
+    output_ok = len(layers) >= 2 and layers[-1][2:] == [None, None] and layers[-1][0].shape[2] == n_outputs
+    if not output_ok or pending is not None or any(layer[3] is None for layer in layers[:-1]):
         raise _unsupported(critic)
-    return [tuple(layer) for layer in layers[:-1]], (layers[-1][0], layers[-1][1])  # type: ignore[misc]
+    # Q is the first output (a distributional critic's mean)
+    return [tuple(layer) for layer in layers[:-1]], (layers[-1][0][..., :1], layers[-1][1][..., :1])  # type: ignore[misc]
 
 
 def _unsupported(critic: EnsembleCritic) -> ValueError:
