@@ -314,3 +314,88 @@ def test_cuda_training_and_prediction(tmp_path, fast):
     np.testing.assert_allclose(
         cpu_model.predict(observation, deterministic=True)[0], model.predict(observation, deterministic=True)[0], atol=1e-5
     )
+
+
+def distributional_model(fast) -> DACERF:
+    """A DACERF with Gaussian critics and a filled replay buffer, before its first update."""
+    fast["policy_kwargs"]["distributional_critic"] = True
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, **{**fast, "learning_starts": 1_000})
+    with pytest.warns(UserWarning, match="without a single gradient step"):
+        model.learn(60)
+    return model
+
+
+def test_distributional_critic_loss_is_dsac_t_without_the_entropy_term(fast):
+    """The first update's critic loss of Gaussian critics against DSAC-T's written out here (targets from the smaller
+    target mean and its sample, no entropy term; ω̄ the batch's mean σ), and its gradients."""
+    model = distributional_model(fast)
+    assert model.replay_buffer is not None
+    batch = model.replay_buffer.sample(32)
+    with th.no_grad():
+        next_actions = model.actor(batch.next_observations)
+    th.manual_seed(7)
+    loss = model._distributional_critic_loss(batch, next_actions)
+    th.manual_seed(7)
+
+    def gaussian(critic, obs, actions):
+        outputs = critic.ensemble(th.cat([critic.extract_features(obs, critic.features_extractor), actions], dim=1))
+        return [(output[:, :1], th.nn.functional.softplus(output[:, 1:])) for output in outputs]
+
+    with th.no_grad():
+        (m1, s1), (m2, s2) = gaussian(model.critic_target, batch.next_observations, next_actions)
+        z1, z2 = th.randn_like(m1).clamp(-3, 3), th.randn_like(m2).clamp(-3, 3)
+        target = batch.rewards + (1 - batch.dones) * 0.99 * th.min(m1, m2)
+        target_sample = batch.rewards + (1 - batch.dones) * 0.99 * th.where(m1 < m2, m1 + z1 * s1, m2 + z2 * s2)
+    expected = th.zeros(())
+    for q, q_std in gaussian(model.critic, batch.observations, batch.actions):
+        mean_std, std_d = q_std.detach().mean(), q_std.detach()
+        bound = q.detach() + th.clamp(target_sample - q.detach(), -3 * mean_std, 3 * mean_std)
+        ratio = (mean_std**2 / (std_d**2 + 0.1)).clamp(0.1, 10)
+        huber_q = th.nn.functional.huber_loss(q, target, delta=50, reduction="none")
+        huber_bound = th.nn.functional.huber_loss(q.detach(), bound, delta=50, reduction="none")
+        expected = expected + th.mean(ratio * (huber_q + q_std * (std_d**2 - huber_bound) / (std_d + 0.1)))
+    th.testing.assert_close(loss, expected)
+    parameters = list(model.critic.parameters())
+    for got, want in zip(th.autograd.grad(loss, parameters), th.autograd.grad(expected, parameters), strict=True):
+        th.testing.assert_close(got, want)
+    batch_stds = [std.mean().item() for _, std in gaussian(model.critic, batch.observations, batch.actions)]
+    assert model.running_std == pytest.approx(batch_stds)
+
+
+def test_langevin_gradient_of_a_distributional_critic_is_that_of_its_mean(fast):
+    model = distributional_model(fast)
+    observations, actions = th.randn((16, 3)), th.rand((16, 1)) * 2 - 1
+    with th.enable_grad():
+        actions_grad = actions.clone().requires_grad_(True)
+        min_q = model.critic.q_values(observations, actions_grad).min(dim=0).values
+        (expected,) = th.autograd.grad(min_q.sum(), actions_grad)
+    th.testing.assert_close(MinQActionGradient(model.critic, observations)(actions), expected)
+    assert model.critic.q_values(observations, actions).shape == (2, 16, 1)
+
+
+def test_distributional_critic_learns_logs_saves_and_loads(tmp_path, fast):
+    fast["policy_kwargs"]["distributional_critic"] = True
+    model = DACERF("MlpPolicy", "Pendulum-v1", seed=0, **fast)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(200, log_interval=1)
+    with open(tmp_path / "progress.csv") as file:
+        last = list(csv.DictReader(file))[-1]
+    assert float(last["train/running_std1"]) > 0 and float(last["train/running_std2"]) > 0
+    model.save(tmp_path / "model")
+    loaded = DACERF.load(tmp_path / "model")
+    assert loaded.critic.distributional and loaded.critic_target.distributional
+    assert loaded.running_std == model.running_std
+    assert loaded.policy_kwargs["distributional_critic"] is True
+    observation = np.zeros(3, dtype=np.float32)
+    np.testing.assert_allclose(
+        loaded.predict(observation, deterministic=True)[0], model.predict(observation, deterministic=True)[0]
+    )
+
+
+@pytest.mark.parametrize(
+    "policy_kwargs, message",
+    [(dict(critic="batch_renorm"), "not critic='batch_renorm'"), (dict(n_critics=3), "n_critics=3 must be 2")],
+)
+def test_distributional_critic_refuses_what_its_targets_cannot_take(policy_kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        DACERF("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(distributional_critic=True, **policy_kwargs))

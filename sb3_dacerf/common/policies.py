@@ -231,7 +231,10 @@ class EnsembleCritic(BaseModel):
     """
     ``n_critics`` Q-networks ``Q_j(s, a) = MLP_j(concat(features(s), a))`` run as one network (:attr:`ensemble`).
     Same arguments as SB3's ``ContinuousCritic``; calling it returns one ``(batch, 1)`` tensor per critic as that
-    does, :meth:`q_values` returns them stacked.
+    does, :meth:`q_values` returns them stacked. And:
+
+    :param distributional: Each network also outputs the standard deviation of a Gaussian return whose mean is
+        ``Q_j`` (DSAC's critics, :meth:`distributions`)
     """
 
     features_extractor: BaseFeaturesExtractor
@@ -410,7 +413,6 @@ class TwinCriticPolicy(BasePolicy):
         share_features_extractor: bool = False,
         actor_kwargs: dict[str, Any] | None = None,
         critic: str = "mlp",
-        distributional_critic: bool = False,
     ):
         if critic not in CRITICS:
             raise ValueError(f"Invalid critic={critic!r}: it must be one of {', '.join(map(repr, CRITICS))}.")
@@ -436,8 +438,6 @@ class TwinCriticPolicy(BasePolicy):
         self.actor_kwargs = {**shared, "activation_fn": activation_fn, "net_arch": actor_arch, **self.actor_options}
         self.critic_kwargs = {**shared, "activation_fn": activation_fn, "net_arch": critic_arch, "n_critics": n_critics}
         self.critic_kwargs.update(share_features_extractor=share_features_extractor)
-        if distributional_critic:
-            self.critic_kwargs.update(distributional=True)
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -472,7 +472,6 @@ class TwinCriticPolicy(BasePolicy):
             features_extractor_kwargs=self.features_extractor_kwargs,
             share_features_extractor=self.share_features_extractor,
             critic=self.critic_kind,
-            distributional_critic=self.critic_kwargs.get("distributional", False),
             **self.actor_options,
         )
         return data

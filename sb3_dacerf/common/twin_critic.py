@@ -75,6 +75,9 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
     ent_coef: str | float
     target_entropy: str | float
     ent_coef_optimizer: th.optim.Adam | None = None
+    #: Running means ``ω̄_i`` of distributional critics' standard deviations (``None`` without them, or before the first
+    #: update), logged as ``train/running_std<i>``
+    running_std: list[float] | None = None
 
     def __init__(self, arguments: dict[str, Any]):
         """:param arguments: The algorithm's constructor's ``locals()``: those of SB3's ``OffPolicyAlgorithm`` go there
@@ -152,6 +155,8 @@ class TwinCriticAlgorithm(TwinCriticPersistence):
                 logs.setdefault(key, []).append(value)
         self.logger.record("train/n_updates", self._n_updates)
         self.logger.record("train/ent_coef", self.log_alpha.exp().item())
+        for index, value in enumerate(self.running_std or [], start=1):
+            self.logger.record(f"train/running_std{index}", value)
         for key, values in logs.items():
             finite = [value for value in values if math.isfinite(value)]
             if finite:

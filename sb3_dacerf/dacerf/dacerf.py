@@ -12,8 +12,8 @@ from torch.nn import functional as F
 from sb3_dacerf.common.policies import EnsembleCritic, twin_critic_loss
 from sb3_dacerf.common.twin_critic import TwinCriticAlgorithm, frozen
 from sb3_dacerf.common.validation import HyperparameterRule, integer_at_least
-from sb3_dacerf.dsac.dsac import bounded_target, critic_loss, distributional_targets
 from sb3_dacerf.dacerf.policies import CnnPolicy, DACERFPolicy, FlowActor, MinQActionGradient, MlpPolicy, MultiInputPolicy
+from sb3_dacerf.dsac.dsac import distributional_targets, gaussian_critics_loss, updated_running_std
 
 #: The weightings of the two terms of the actor loss (``flow_matching_weights``), see :func:`actor_loss_weights`
 FLOW_MATCHING_WEIGHTS = ("gain", "paper")
@@ -102,8 +102,7 @@ class DACERF(TwinCriticAlgorithm):
         self.flow_matching_coef = flow_matching_coef
         self.flow_matching_weights = flow_matching_weights
         self._n_actor_updates = 0
-        #: Running means ``ω̄_i`` of a distributional critic's standard deviations (``None`` before the first update)
-        self.running_std: list[float] | None = None
+        self.running_std = None
         # The defaults written into a copy of policy_kwargs, so that a saved model records them
         self.policy_kwargs = {"n_sampling_steps": 1, "critic": "layer_norm", **self.policy_kwargs}
 
@@ -145,8 +144,8 @@ class DACERF(TwinCriticAlgorithm):
         return logs
 
     def _distributional_critic_loss(self, replay_data: Any, next_actions: th.Tensor) -> th.Tensor:
-        """DSAC-T's loss of the two Gaussian critics (:func:`~sb3_dacerf.dsac.dsac.critic_loss`), the targets without
-        an entropy term (as :func:`twin_critic_loss`'s), ``ω̄_i`` running means of the critics' standard deviations."""
+        """DSAC-T's loss of the two Gaussian critics (:func:`~sb3_dacerf.dsac.dsac.gaussian_critics_loss`), its
+        targets without an entropy term (as :func:`twin_critic_loss`'s), ``ω̄_i`` with coefficient ``tau``."""
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         with th.no_grad():
             next_means, next_stds = self.critic_target.distributions(replay_data.next_observations, next_actions)
@@ -160,16 +159,9 @@ class DACERF(TwinCriticAlgorithm):
                 [th.randn_like(mean) for mean, _ in next_distributions],
             )
         means, stds = self.critic.distributions(replay_data.observations, replay_data.actions)
-        batch_stds = stds.detach().mean(dim=(1, 2)).tolist()
-        if self.running_std is None:
-            self.running_std = batch_stds
-        else:
-            self.running_std = [(1 - self.tau) * old + self.tau * new for old, new in zip(self.running_std, batch_stds, strict=True)]
-        losses = [
-            critic_loss(mean, std, target_mean, bounded_target(mean, target_sample, omega), omega)
-            for mean, std, omega in zip(means.unbind(0), stds.unbind(0), self.running_std, strict=True)
-        ]
-        return losses[0] + losses[1]
+        self.running_std = updated_running_std(self.running_std, stds.unbind(0), self.tau)
+        distributions = list(zip(means.unbind(0), stds.unbind(0), strict=True))
+        return gaussian_critics_loss(distributions, target_mean, target_sample, self.running_std)
 
     def langevin_targets(self, observations: th.Tensor, actions: th.Tensor) -> th.Tensor:
         """

@@ -2,7 +2,7 @@ from collections.abc import Callable
 from typing import Any
 
 import torch as th
-from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN, create_mlp
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN, create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
@@ -82,19 +82,42 @@ class DACERFPolicy(TwinCriticPolicy):
     :class:`~sb3_dacerf.common.policies.TwinCriticPolicy`, ``activation_fn`` one of :data:`ACTIVATION_BACKWARDS`, and:
 
     :param n_sampling_steps: Number of Euler steps of the flow sampler
+    :param distributional_critic: Gaussian critics ``N(Q_j, σ_j²)`` trained with DSAC-T's loss (two critics with
+        target networks); ``Q_j`` is their mean
     """
 
     actor_class = FlowActor
     actor: FlowActor
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
 
-    def __init__(self, *args: Any, n_sampling_steps: int = 1, **kwargs: Any):
+    def __init__(self, *args: Any, n_sampling_steps: int = 1, distributional_critic: bool = False, **kwargs: Any):
         activation_fn = kwargs.get("activation_fn") or self.default_activation_fn
         if activation_fn not in ACTIVATION_BACKWARDS:
             raise ValueError(
                 f"DACERF's critics take activation_fn={', '.join(cls.__name__ for cls in ACTIVATION_BACKWARDS)} (the "
                 f"Langevin gradient is written out for them), not {activation_fn!r}."
             )
+        if distributional_critic and kwargs.get("critic") == "batch_renorm":
+            raise ValueError(
+                "distributional_critic=True takes critics with target networks (DSAC-T's targets), not "
+                "critic='batch_renorm': choose critic='layer_norm' or 'mlp', or distributional_critic=False."
+            )
+        if distributional_critic and kwargs.get("n_critics", 2) != 2:
+            raise ValueError(
+                f"distributional_critic=True takes exactly two critics (DSAC-T's target takes the smaller of two "
+                f"means with its sample): n_critics={kwargs['n_critics']!r} must be 2, or distributional_critic=False."
+            )
+        self.distributional_critic = distributional_critic
         super().__init__(*args, actor_kwargs=dict(n_sampling_steps=n_sampling_steps), **kwargs)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        return {**super()._get_constructor_parameters(), "distributional_critic": self.distributional_critic}
+
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> EnsembleCritic:
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        critic_class = self.critic_classes[self.critic_kind]
+        return critic_class(**critic_kwargs, distributional=self.distributional_critic).to(self.device)
 
 
 # A hidden block of a written-out critic: (weight (n, in, out), bias (n, out), LayerNorm or None, activation)

@@ -1,4 +1,6 @@
+import functools
 import math
+import operator
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -70,6 +72,30 @@ def critic_loss(
     mean_term = F.huber_loss(mean, target_mean, delta=HUBER_DELTA, reduction="none")
     std_term = std * (std_d.pow(2) - F.huber_loss(mean_d, target_bound, delta=HUBER_DELTA, reduction="none"))
     return th.mean(weight * (mean_term + std_term / (std_d + STD_EPSILON)))
+
+
+def updated_running_std(running_std: list[float] | None, stds: Sequence[th.Tensor], tau_b: float) -> list[float]:
+    """The running means ``ω̄_i <- (1 - tau_b) ω̄_i + tau_b mean(σ_i)`` of the critics' standard deviations ``stds``
+    (``ω̄_i`` starts at the first batch's mean: ``running_std`` ``None``)."""
+    batch_stds = [std.detach().mean().item() for std in stds]
+    if running_std is None:
+        return batch_stds
+    return [(1 - tau_b) * old + tau_b * new for old, new in zip(running_std, batch_stds, strict=True)]
+
+
+def gaussian_critics_loss(
+    distributions: Sequence[tuple[th.Tensor, th.Tensor]],
+    target_mean: th.Tensor,
+    target_sample: th.Tensor,
+    running_std: Sequence[float],
+) -> th.Tensor:
+    """The sum over the critics' ``(Q_i, σ_i)`` ``distributions`` of :func:`critic_loss`, each critic's sampled target
+    bounded by its running standard deviation ``ω̄_i`` (:func:`bounded_target`)."""
+    losses = [
+        critic_loss(mean, std, target_mean, bounded_target(mean, target_sample, omega), omega)
+        for (mean, std), omega in zip(distributions, running_std, strict=True)
+    ]
+    return functools.reduce(operator.add, losses)
 
 
 class DSAC(TwinCriticAlgorithm):
@@ -144,8 +170,7 @@ class DSAC(TwinCriticAlgorithm):
         super().__init__(locals())
         self.alpha_learning_rate = alpha_learning_rate
         self.tau_b = tau if tau_b is None else tau_b
-        #: Running means ``ω̄_i`` of the critics' standard deviations (``None`` before the first update)
-        self.running_std: list[float] | None = None
+        self.running_std = None
 
         if _init_setup_model:
             self._setup_model()
@@ -164,12 +189,6 @@ class DSAC(TwinCriticAlgorithm):
     def _create_aliases(self) -> None:
         super()._create_aliases()
         self.actor_target = self.policy.actor_target
-
-    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        super().train(gradient_steps, batch_size)
-        if self.running_std is not None:
-            for index, value in enumerate(self.running_std, start=1):
-                self.logger.record(f"train/running_std{index}", value)
 
     def _update(self, replay_data: ReplayBufferSamples) -> dict[str, float]:
         """The critics' step, and every ``policy_delay`` updates the actor's, ``α``'s and the targets', all gradients
@@ -194,18 +213,8 @@ class DSAC(TwinCriticAlgorithm):
             )
 
         distributions = self.critic.distributions(replay_data.observations, replay_data.actions)
-        batch_stds = [std.detach().mean().item() for _, std in distributions]
-        if self.running_std is None:
-            self.running_std = batch_stds
-        else:
-            self.running_std = [
-                (1 - self.tau_b) * old + self.tau_b * new for old, new in zip(self.running_std, batch_stds, strict=True)
-            ]
-        losses = [
-            critic_loss(mean, std, target_mean, bounded_target(mean, target_sample, omega), omega)
-            for (mean, std), omega in zip(distributions, self.running_std, strict=True)
-        ]
-        loss = losses[0] + losses[1]
+        self.running_std = updated_running_std(self.running_std, [std for _, std in distributions], self.tau_b)
+        loss = gaussian_critics_loss(distributions, target_mean, target_sample, self.running_std)
         logs = {"critic_loss": self._checked(loss, "critic loss", replay_data)}
         for index, (mean, std) in enumerate(distributions, start=1):
             logs[f"q{index}_mean"] = mean.detach().mean().item()
