@@ -10,6 +10,9 @@ and, on ``--batch`` transitions drawn from the last ``--last`` of the buffer, pr
 - the Langevin targets ``a*`` of the model's own settings (Algorithm 1), their displacement from the replay actions
   split into what the gradient steps and what the noise contribute (summed over the steps, before the clip), the
   share of target and replay coordinates at an action bound, and ``min_j Q_j(s, a*) - min_j Q_j(s, a_B)``;
+- the actor loss's weights on the same batch (:meth:`~sb3_dacerf.DACERF.actor_loss_terms`): ``κ`` beside the spread of
+  ``Q(s, a_B)``, the mean ``λ_f``, both terms, and the norm of the imitation term's gradient on the actor over the
+  improvement term's;
 - the share of the policy's deterministic action coordinates beyond ±0.99 on the same states;
 - on the last ``--episodes`` complete training episodes of the buffer: the critics' ``min_j Q_j(s_t, a_t)`` against the
   discounted return (at a time limit continued by the critics, as their targets are), both averaged over the steps.
@@ -20,6 +23,7 @@ and, on ``--batch`` transitions drawn from the last ``--last`` of the buffer, pr
 import argparse
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import _checkout  # noqa: F401  (the repository's sb3_dacerf)
@@ -124,6 +128,19 @@ def print_langevin(model: DACERF, obs: th.Tensor, actions: th.Tensor) -> None:
     print(f"Q(s, a*) - Q(s, a_B): mean {gain.mean():.4f}, median {gain.median():.4f}, > 0 in {(gain > 0).float().mean():.0%}")
 
 
+def print_actor_loss(model: DACERF, obs: th.Tensor, actions: th.Tensor) -> None:
+    """The actor loss's weights and the balance of its two terms' gradients on the replay batch ``obs``, ``actions``."""
+    terms = model.actor_loss_terms(SimpleNamespace(observations=obs, actions=actions))
+    q_replay = terms["q_values_buffer"]
+    spread = (q_replay - q_replay.mean()).abs().mean()
+    print(
+        f"actor loss ({model.flow_matching_weights} weights): kappa {terms['kappa'].item():.4g} "
+        f"(spread of Q(s, a_B) {spread.item():.4g}), mean lambda_f {terms['lambda_f'].mean().item():.3g}, "
+        f"improvement term {terms['improvement_term'].item():.4g}, imitation term {terms['imitation_term'].item():.4g}"
+    )
+    print(f"actor gradient norm, imitation over improvement: {model._actor_gradient_ratio(terms):.4g}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", type=Path, help="a learning_curves.py checkpoint folder of a dacerf or sac run")
@@ -164,6 +181,7 @@ def main() -> None:
     )
     if isinstance(model, DACERF):
         print_langevin(model, obs, actions)
+        print_actor_loss(model, obs, actions)
     with th.no_grad():
         policy_actions = model.actor(obs, deterministic=True)
     print(

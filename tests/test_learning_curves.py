@@ -252,6 +252,9 @@ def test_langevin_diagnostics_of_a_checkpoint(tmp_path, learning_curves):
     printed = diagnose(folder, "--batch", "64", "--episodes", "0").stdout
     assert "at 200 steps (last evaluation" in printed and "64 transitions of the last 200" in printed
     assert re.search(r"Langevin \(20 steps of 0\.03, temperature 0\.01\): per coordinate the gradient moves \d", printed)
+    assert re.search(r"actor loss \(gain weights\): kappa \d\S* \(spread of Q\(s, a_B\) \d", printed)
+    ratio = re.search(r"actor gradient norm, imitation over improvement: (\S+)", printed)
+    assert ratio and float(ratio.group(1)) > 0
     learning_curves.run_one(job(tmp_path, "sac", 200))
     folder = learning_curves.checkpoint_dir(tmp_path, "Pendulum-v1", "sac", 3)
     printed = diagnose(folder, "--batch", "64", "--episodes", "0").stdout
