@@ -35,7 +35,7 @@ from stable_baselines3 import SAC
 from sb3_dacerf import DACERF
 from sb3_dacerf.common.persistence import saved_algorithm_name
 from sb3_dacerf.common.twin_critic import frozen
-from sb3_dacerf.dacerf.dacerf import langevin_targets
+from sb3_dacerf.dacerf.dacerf import langevin_targets, q_value_spread
 from sb3_dacerf.dacerf.policies import MinQActionGradient
 
 ALGORITHMS: dict[str, type] = {"dacerf": DACERF, "sac": SAC}
@@ -131,8 +131,7 @@ def print_langevin(model: DACERF, obs: th.Tensor, actions: th.Tensor) -> None:
 def print_actor_loss(model: DACERF, obs: th.Tensor, actions: th.Tensor) -> None:
     """The actor loss's weights and the balance of its two terms' gradients on the replay batch ``obs``, ``actions``."""
     terms = model.actor_loss_terms(SimpleNamespace(observations=obs, actions=actions))
-    q_replay = terms["q_values_buffer"]
-    spread = (q_replay - q_replay.mean()).abs().mean()
+    spread = q_value_spread(terms["q_values_buffer"])
     print(
         f"actor loss ({model.flow_matching_weights} weights): kappa {terms['kappa'].item():.4g} "
         f"(spread of Q(s, a_B) {spread.item():.4g}), mean lambda_f {terms['lambda_f'].mean().item():.3g}, "

@@ -339,6 +339,11 @@ def flow_matching_loss(
     return (velocity(actions_t, time) - (targets - noise)).pow(2).sum(dim=1, keepdim=True)
 
 
+def q_value_spread(q_values: th.Tensor) -> th.Tensor:
+    """The mean absolute deviation of a batch of Q values (a scalar tensor): the scale ``"gain"`` weights floor ``κ`` at."""
+    return (q_values - q_values.mean()).abs().mean()
+
+
 def actor_loss_weights(
     method: str, q_values_star: th.Tensor, q_values_buffer: th.Tensor, coef: float = 1.0
 ) -> tuple[th.Tensor, th.Tensor]:
@@ -356,8 +361,7 @@ def actor_loss_weights(
         gain = F.relu(q_values_star - q_values_buffer)
         mean_gain = gain.mean()
         if method == "gain":
-            q_spread = (q_values_buffer - q_values_buffer.mean()).abs().mean()
-            kappa = th.maximum(mean_gain, 1e-3 * q_spread).clamp_min(1e-8)
+            kappa = th.maximum(mean_gain, 1e-3 * q_value_spread(q_values_buffer)).clamp_min(1e-8)
             return kappa, coef * (gain / mean_gain.clamp_min(1e-12))
         if method == "paper":
             return th.ones_like(mean_gain), coef * gain
