@@ -64,8 +64,6 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-mlp": ("DACERF", dict(policy_kwargs=dict(critic="mlp"))),  # SB3's MLP critics
     # DSAC-T's Gaussian critics and their loss (the official DACER's critics)
     "dacerf-dist": ("DACERF", dict(policy_kwargs=dict(distributional_critic=True))),
-    # kappa at least 5% of the spread of Q(s, a_B): the improvement term weighs at most 20x the critic's scale
-    "dacerf-kfloor": ("DACERF", dict(kappa_floor=0.05)),
     # CrossQ's learning rate 1e-3 and Adam betas (0.5, 0.999), with the default critics and their targets
     "dacerf-lr": ("DACERF", dict(learning_rate=1e-3, policy_kwargs=dict(optimizer_kwargs=dict(betas=(0.5, 0.999))))),
     # CrossQ's critics: batch renormalisation, no target networks (same width, learning rate and Adam as the defaults)

@@ -168,20 +168,6 @@ def test_gain_weighting_stays_finite_without_any_langevin_gain():
     assert th.isfinite(kappa) and kappa > 0 and (lambda_f == 0).all()
 
 
-def test_kappa_floor_bounds_the_improvement_weight_by_the_spread_of_q():
-    _, q_star, q_buffer = random_q_values()
-    spread = (q_buffer - q_buffer.mean()).abs().mean()
-    gain = (q_star - q_buffer).clamp_min(0).mean()
-    kappa, lambda_f = actor_loss_weights("gain", q_star, q_buffer)
-    th.testing.assert_close(kappa, gain)  # the default floor does not bind on these values
-    floor = 2 * gain.item() / spread.item()
-    kappa_floored, lambda_floored = actor_loss_weights("gain", q_star, q_buffer, kappa_floor=floor)
-    th.testing.assert_close(kappa_floored, floor * spread)
-    th.testing.assert_close(lambda_floored, lambda_f)  # the floor weights -Q only
-    with pytest.raises(ValueError, match="kappa_floor"):
-        DACERF("MlpPolicy", "Pendulum-v1", kappa_floor=-0.1)
-
-
 def test_actor_loss_terms_and_their_balance_are_logged(fast):
     """The balance of the actor loss's terms is a diagnostic: logged with verbose=2 only (two extra backward passes)."""
     quiet = DACERF("MlpPolicy", "Pendulum-v1", seed=0, policy_delay=1, **fast).learn(120)

@@ -38,8 +38,6 @@ class DACERF(TwinCriticAlgorithm):
     :param flow_matching_coef: Weight of the flow-matching (imitation) term relative to the ``-Q`` term
     :param flow_matching_weights: How the two terms of the actor loss are weighted: ``"gain"`` (free of the reward's
         scale and shift) or ``"paper"`` (the paper's weight taken literally), see :func:`actor_loss_weights`
-    :param kappa_floor: With ``"gain"`` weights, ``κ`` is at least this fraction of the spread of ``Q(s, a_B)``: it
-        bounds the improvement term's weight relative to the critic's scale
     :param ent_coef: Entropy regulator coefficient ``α``: ``"auto"`` learns it from ``α = 3``, ``"auto_0.5"`` from
         0.5; a float fixes it; ``0`` adds no noise (the paper's mechanism)
     :param target_entropy: Target entropy of the noisy policy when ``α`` is learned; ``"auto"`` is ``-dim(A)``
@@ -58,7 +56,6 @@ class DACERF(TwinCriticAlgorithm):
         "langevin_temperature": HyperparameterRule(lambda value: value >= 0, ">= 0 (0 is noise-free gradient ascent)"),
         "n_sampling_steps": integer_at_least(1),  # in policy_kwargs
         "flow_matching_coef": HyperparameterRule(lambda value: value >= 0, ">= 0"),
-        "kappa_floor": HyperparameterRule(lambda value: value >= 0, ">= 0"),
     }
     policy: DACERFPolicy
     actor: FlowActor
@@ -88,7 +85,6 @@ class DACERF(TwinCriticAlgorithm):
         langevin_temperature: float = 0.01,
         flow_matching_coef: float = 1.0,
         flow_matching_weights: str = "gain",
-        kappa_floor: float = 1e-3,
         ent_coef: str | float = "auto",
         target_entropy: str | float = "auto",
         stats_window_size: int = 100,
@@ -105,7 +101,6 @@ class DACERF(TwinCriticAlgorithm):
         self.langevin_temperature = langevin_temperature
         self.flow_matching_coef = flow_matching_coef
         self.flow_matching_weights = flow_matching_weights
-        self.kappa_floor = kappa_floor
         self._n_actor_updates = 0
         self.running_std = None
         # The defaults written into a copy of policy_kwargs, so that a saved model records them
@@ -208,7 +203,7 @@ class DACERF(TwinCriticAlgorithm):
 
             # Flow-matching (imitation) term ||v_θ(s, a_t, t) - (a* - a_0)||² towards a*, weighted by λ_f ∝ the gain
             kappa, lambda_f = actor_loss_weights(
-                self.flow_matching_weights, q_values_star, q_values_buffer, self.flow_matching_coef, self.kappa_floor
+                self.flow_matching_weights, q_values_star, q_values_buffer, self.flow_matching_coef
             )
             flow_error = flow_matching_loss(lambda a_t, t: self.actor.velocity(features, a_t, t), actions_star)
         return dict(
@@ -350,13 +345,13 @@ def q_value_spread(q_values: th.Tensor) -> th.Tensor:
 
 
 def actor_loss_weights(
-    method: str, q_values_star: th.Tensor, q_values_buffer: th.Tensor, coef: float = 1.0, kappa_floor: float = 1e-3
+    method: str, q_values_star: th.Tensor, q_values_buffer: th.Tensor, coef: float = 1.0
 ) -> tuple[th.Tensor, th.Tensor]:
     """
     Weights of the actor loss ``J_F = mean(-Q(s, π(s)) / κ + λ_f ||v - (a* - a_0)||²)``, from the Langevin gain
     ``g = ReLU(Q(s, a*) - Q(s, a_B))`` of each sample (``q_values_star``, ``q_values_buffer``: ``(batch, 1)``):
 
-    - ``"gain"``: ``κ = mean(g)`` (floored at ``kappa_floor`` times the mean absolute deviation of ``Q(s, a_B)``) and
+    - ``"gain"``: ``κ = mean(g)`` (floored at ``1e-3`` of the mean absolute deviation of ``Q(s, a_B)``) and
       ``λ_f = coef · g / mean(g)``: both terms free of the reward's scale and shift.
     - ``"paper"``: ``κ = 1`` and ``λ_f = coef · g``, the paper's weight taken literally.
 
@@ -366,7 +361,7 @@ def actor_loss_weights(
         gain = F.relu(q_values_star - q_values_buffer)
         mean_gain = gain.mean()
         if method == "gain":
-            kappa = th.maximum(mean_gain, kappa_floor * q_value_spread(q_values_buffer)).clamp_min(1e-8)
+            kappa = th.maximum(mean_gain, 1e-3 * q_value_spread(q_values_buffer)).clamp_min(1e-8)
             return kappa, coef * (gain / mean_gain.clamp_min(1e-12))
         if method == "paper":
             return th.ones_like(mean_gain), coef * gain
