@@ -95,7 +95,7 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # a discount whose horizon 1 / (1 - gamma) = 500 steps covers a 400-step intersection episode (the driving
     # rewards are audited as undiscounted episode totals)
     "sac-gamma998": ("SAC", dict(gamma=0.998)),
-    "td3": ("TD3", {}),
+    "td3": ("TD3", dict(action_noise_std=0.1)),  # RL Zoo's exploration noise for TD3 on MuJoCo tasks
     "tqc": ("TQC", {}),
     "crossq": ("CrossQ", {}),
 }
