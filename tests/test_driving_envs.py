@@ -371,16 +371,12 @@ def test_scripted_driver_names_are_the_drivers_names():
 
 
 def module_imports(path) -> set[str]:
-    """The modules a source file imports, except inside a module-level ``__getattr__`` (deprecated aliases)."""
+    """The modules a source file imports."""
     import ast
 
     tree = ast.parse(open(path).read())
-    aliases = [node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == "__getattr__"]
-    skipped = {id(node) for alias in aliases for node in ast.walk(alias)}
     imported = set()
     for node in ast.walk(tree):
-        if id(node) in skipped:
-            continue
         if isinstance(node, ast.Import):
             imported.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module:

@@ -2,7 +2,7 @@
 Files a user downloads run no code: crafted model zips, statistics pickles, metadata and configs go through every
 loader (``load``, ``set_parameters``, the export command, ``examples/evaluate_driving.py``) and leave no trace of
 code having run. Each payload, unpickled, would create a marker file. Also: the checksums of the shipped drivers,
-and the validation of what used to pass silently (another environment's replay buffer, a zip missing its parts,
+and the validation of inputs that would otherwise pass silently (another environment's replay buffer, a zip missing its parts,
 the temporary file of a killed save).
 """
 
@@ -394,7 +394,7 @@ def test_a_changed_shipped_file_is_refused_by_the_loaders(tmp_path, monkeypatch,
     assert "does not match its checksum" in capsys.readouterr().err
 
 
-# What used to pass silently
+# Inputs that would otherwise pass silently
 
 
 @pytest.mark.parametrize("buffer_size", [0, -1])
