@@ -2,8 +2,8 @@
 Files a user downloads run no code: crafted model zips, statistics pickles, metadata and configs go through every
 loader (``load``, ``set_parameters``, the export command, ``examples/evaluate_driving.py``) and leave no trace of
 code having run. Each payload, unpickled, would create a marker file. Also: the checksums of the shipped drivers,
-and the validation of inputs that would otherwise pass silently (another environment's replay buffer, a zip missing its parts,
-the temporary file of a killed save).
+and the validation of inputs that would otherwise pass silently (another environment's replay buffer, a zip missing
+its parts, the temporary file of a killed save).
 """
 
 import base64
