@@ -88,8 +88,6 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "dacerf-utd2": ("DACERF", dict(gradient_steps=2)),  # two gradient steps per environment step (twice the updates)
     "dacerf-tau001": ("DACERF", dict(tau=0.001)),
     "dacerf-noise": ("DACERF", dict(ent_coef=0.0, action_noise_std=0.1)),
-    # each replay transition's Langevin chain goes on across updates (persistent_langevin.py; a measurement)
-    "dacerf-chain": ("PersistentLangevinDACERF", {}),
     "dacer": ("DACER", {}),
     "dsac": ("DSAC", {}),  # DSAC-T with the authors' defaults (sb3_dacerf.DSAC)
     "sac": ("SAC", {}),
@@ -125,10 +123,6 @@ def algorithm_class(name: str) -> type:
         import sb3_contrib
 
         return getattr(sb3_contrib, name)
-    if name == "PersistentLangevinDACERF":
-        from persistent_langevin import PersistentLangevinDACERF
-
-        return PersistentLangevinDACERF
     return getattr(sb3_dacerf, name)
 
 
@@ -165,7 +159,7 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
     return pd.read_csv(path).to_dict("records") if path.exists() else []
 
 
-BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts", "chain_actions")
+BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 
 
 def save_checkpoint(model: Any, folder: Path, rows: list[dict[str, Any]], wall_seconds: float) -> None:

@@ -40,7 +40,7 @@ def job(out: Path, variant: str, timesteps: int, **overrides) -> dict:
     return {**settings, **overrides}
 
 
-@pytest.mark.parametrize("variant", ["dacerf", "dacerf-chain", "sac"])
+@pytest.mark.parametrize("variant", ["dacerf", "sac"])
 def test_resumed_run_matches_uninterrupted_run(tmp_path, learning_curves, variant):
     straight = learning_curves.run_one(job(tmp_path / "straight", variant, 300))
     # A run that stops at 200 steps (checkpointed at 100 and at its end), then is asked for 300: it resumes from 200
@@ -261,30 +261,3 @@ def test_langevin_diagnostics_of_a_checkpoint(tmp_path, learning_curves):
     assert "policy coordinates beyond ±0.99" in printed and "Langevin" not in printed
     missing = diagnose(tmp_path, check=False)
     assert missing.returncode != 0 and "holds no checkpoint (no state.pkl)" in missing.stderr
-
-
-def test_dacerf_chain_goes_on_from_each_transitions_last_chain_state(learning_curves):
-    import numpy as np
-    import torch as th
-
-    sys.path.insert(0, str(BENCHMARKS))
-    from persistent_langevin import PersistentLangevinDACERF
-
-    model = PersistentLangevinDACERF("MlpPolicy", "Pendulum-v1", seed=0, learning_starts=50, langevin_steps=0)
-    model.learn(100)
-    buffer = model.replay_buffer
-    # A new transition's chain starts at its replay action
-    assert np.array_equal(buffer.chain_actions[buffer.pos - 1], buffer.actions[buffer.pos - 1])
-    buffer.chain_actions[:16] = 0.5
-    replay = buffer._get_samples(np.arange(16))
-    terms = model.actor_loss_terms(replay)
-    assert th.all(terms["targets"] == 0.5)  # from the chain states, not from the replay actions
-    q_values_buffer = model.critic(replay.observations, replay.actions)
-    assert th.allclose(terms["q_values_buffer"], th.min(*q_values_buffer))  # λ_f against Q(s, a_B)
-    model.langevin_steps = 3
-    targets = model.actor_loss_terms(replay)["targets"]
-    assert not th.all(targets == 0.5) and np.array_equal(buffer.chain_actions[:16, 0], targets.numpy())
-    # Outside an actor update, Algorithm 1 starts from the actions it is given and stores nothing
-    model.langevin_steps = 0
-    assert th.equal(model.langevin_targets(replay.observations, replay.actions), replay.actions)
-    assert np.array_equal(buffer.chain_actions[:16, 0], targets.numpy())
