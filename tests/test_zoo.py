@@ -345,39 +345,27 @@ def test_train_enjoy_record_video_continue(tmp_path):
 
 
 @pytest.mark.slow  # RL Zoo in a subprocess
-def test_dacer_train_and_enjoy(tmp_path):
+@pytest.mark.parametrize(
+    "algo, model_class, params, trained",
+    [
+        ("dacer", DACER, TINY_DACER, lambda model: model.actor.n_diffusion_steps == 5),
+        ("dsac", DSAC, TINY_DSAC, lambda model: model._n_updates == 100),
+    ],
+)
+def test_train_and_enjoy(tmp_path, algo, model_class, params, trained):
     train = zoo(
         "train",
-        *["--algo", "dacer", "--env", "Pendulum-v1", "-n", "150", "--seed", "0", "--num-threads", "1"],
-        *["--eval-freq", "100", "--eval-episodes", "1", "-f", "logs", "-params", *TINY_DACER],
+        *["--algo", algo, "--env", "Pendulum-v1", "-n", "150", "--seed", "0", "--num-threads", "1"],
+        *["--eval-freq", "100", "--eval-episodes", "1", "-f", "logs", "-params", *params],
         cwd=tmp_path,
     )
-    assert "dacer.yml" in train.stdout and "rl_zoo3/hyperparams" not in train.stdout
-    run = tmp_path / "logs" / "dacer" / "Pendulum-v1_1"
+    assert f"{algo}.yml" in train.stdout and "rl_zoo3/hyperparams" not in train.stdout
+    run = tmp_path / "logs" / algo / "Pendulum-v1_1"
     for name in ["Pendulum-v1.zip", "best_model.zip", "evaluations.npz"]:
         assert (run / name).is_file(), name
-    model = DACER.load(run / "Pendulum-v1.zip")
-    assert model.actor.n_diffusion_steps == 5 and model.num_timesteps == 150
-    run_args = ["--algo", "dacer", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
-    enjoy = zoo("enjoy", *run_args, "-n", "50", "--no-render", cwd=tmp_path)
-    assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
-
-
-@pytest.mark.slow  # RL Zoo in a subprocess
-def test_dsac_train_and_enjoy(tmp_path):
-    train = zoo(
-        "train",
-        *["--algo", "dsac", "--env", "Pendulum-v1", "-n", "150", "--seed", "0", "--num-threads", "1"],
-        *["--eval-freq", "100", "--eval-episodes", "1", "-f", "logs", "-params", *TINY_DSAC],
-        cwd=tmp_path,
-    )
-    assert "dsac.yml" in train.stdout and "rl_zoo3/hyperparams" not in train.stdout
-    run = tmp_path / "logs" / "dsac" / "Pendulum-v1_1"
-    for name in ["Pendulum-v1.zip", "best_model.zip", "evaluations.npz"]:
-        assert (run / name).is_file(), name
-    model = DSAC.load(run / "Pendulum-v1.zip")
-    assert model.num_timesteps == 150 and model._n_updates == 100
-    run_args = ["--algo", "dsac", "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
+    model = model_class.load(run / "Pendulum-v1.zip")
+    assert model.num_timesteps == 150 and trained(model)
+    run_args = ["--algo", algo, "--env", "Pendulum-v1", "-f", "logs", "--exp-id", "1"]
     enjoy = zoo("enjoy", *run_args, "-n", "50", "--no-render", cwd=tmp_path)
     assert "Pendulum-v1_1/Pendulum-v1.zip" in enjoy.stdout
 
